@@ -1,0 +1,131 @@
+"""OpenCV pinhole camera: a mesh vertex X (mesh units) lands at pixel ``u ~ K (R X + t)``.
+
+Pixel convention (method.md §1): x right, y down, the camera looks along +z, the centre of the
+top-left pixel is (0, 0), so the image centre is ((W - 1) / 2, (H - 1) / 2).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import CameraError
+
+__all__ = ["Camera"]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera and the image it sees.
+
+    Attributes
+    ----------
+    K : (3, 3) float64
+        Intrinsics in pixels.
+    R : (3, 3) float64
+        Rotation, mesh (model) frame to camera frame, OpenCV axes.
+    t : (3,) float64
+        Translation, mesh units, camera frame.
+    width, height : int
+        Image size in pixels.
+    """
+
+    K: FloatArray
+    R: FloatArray
+    t: FloatArray
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        K = np.asarray(self.K, dtype=np.float64)
+        R = np.asarray(self.R, dtype=np.float64)
+        t = np.asarray(self.t, dtype=np.float64).reshape(-1)
+        if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
+            raise CameraError(f"camera needs K 3x3, R 3x3, t 3; got {K.shape}, {R.shape}, {t.shape}")
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise CameraError("camera holds non-finite numbers")
+        if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1.0) > 1e-9 or np.any(K[2, :2] != 0):
+            raise CameraError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+            raise CameraError("R is not a rotation matrix")
+        if int(self.width) < 1 or int(self.height) < 1:
+            raise CameraError(f"image size {self.width}x{self.height} is not positive")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    @property
+    def focal(self) -> float:
+        """Mean focal length in pixels."""
+        return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
+
+    @property
+    def centre(self) -> FloatArray:
+        """Principal point (cx, cy) in pixels."""
+        return self.K[:2, 2].copy()
+
+    def to_camera(self, points: npt.ArrayLike) -> FloatArray:
+        """Mesh-frame points (N, 3) to camera-frame points (N, 3)."""
+        return np.asarray(points, dtype=np.float64) @ self.R.T + self.t
+
+    def project(self, points: npt.ArrayLike) -> FloatArray:
+        """Mesh-frame points (N, 3) to pixels (N, 2); points behind the camera give nan."""
+        pc = self.to_camera(points)
+        uvw = pc @ self.K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = uvw[:, :2] / uvw[:, 2:3]
+        uv[pc[:, 2] <= 0] = np.nan
+        return uv
+
+    def scaled(self, width: int, height: int) -> Camera:
+        """The same camera for the photo resized to ``width`` x ``height`` (pixel centres kept)."""
+        sx = width / self.width
+        sy = height / self.height
+        S = np.array([[sx, 0.0, 0.5 * (sx - 1.0)], [0.0, sy, 0.5 * (sy - 1.0)], [0.0, 0.0, 1.0]])
+        return Camera(S @ self.K, self.R, self.t, width, height)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "K": self.K.tolist(),
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "width": self.width,
+            "height": self.height,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any) -> Camera:
+        """Build a camera from ``{"K", "R", "t", "width", "height"}``; CameraError if malformed."""
+        if not isinstance(data, dict):
+            raise CameraError("camera JSON must be an object with K, R, t, width, height")
+        missing = [k for k in ("K", "R", "t", "width", "height") if k not in data]
+        if missing:
+            raise CameraError(f"camera JSON lacks {', '.join(missing)}")
+        try:
+            K = np.array(data["K"], dtype=np.float64)
+            R = np.array(data["R"], dtype=np.float64)
+            t = np.array(data["t"], dtype=np.float64).reshape(-1)
+            width, height = int(data["width"]), int(data["height"])
+        except (TypeError, ValueError) as exc:
+            raise CameraError(f"camera JSON has a non-numeric entry: {exc}") from None
+        return cls(K, R, t, width, height)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Camera:
+        """Read a camera JSON file; CameraError if it cannot be read or parsed."""
+        try:
+            data = json.loads(Path(path).read_text())
+        except OSError as exc:
+            raise CameraError(f"cannot read camera file {path}: {exc.strerror}") from None
+        except json.JSONDecodeError as exc:
+            raise CameraError(f"camera file {path} is not valid JSON: {exc.msg} at line {exc.lineno}") from None
+        return cls.from_dict(data)

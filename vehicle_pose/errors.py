@@ -1,0 +1,51 @@
+"""Typed errors raised by the engine; each carries a one-line reason a caller can show."""
+
+from __future__ import annotations
+
+
+class VehiclePoseError(Exception):
+    """Base class of every error the engine raises on bad input."""
+
+    code = "vehicle-pose-error"
+
+
+class PhotoError(VehiclePoseError):
+    """The photo cannot be read or is not a usable image."""
+
+    code = "unreadable-photo"
+
+
+class ModelError(VehiclePoseError):
+    """The vehicle model cannot be found, loaded or used."""
+
+    code = "invalid-model"
+
+
+class UnknownModelError(ModelError):
+    """No model with this id exists in the library."""
+
+    code = "unknown-model"
+
+
+class EmptyMeshError(ModelError):
+    """The mesh file holds no triangles."""
+
+    code = "empty-mesh"
+
+
+class CameraError(VehiclePoseError):
+    """A camera (start pose) is malformed or inconsistent."""
+
+    code = "invalid-camera"
+
+
+class PoseError(VehiclePoseError):
+    """A pose cannot be used: the model is behind the camera or off-screen."""
+
+    code = "invalid-pose"
+
+
+class RenderError(VehiclePoseError):
+    """The OpenGL context could not be created or rendering failed."""
+
+    code = "render-failed"

@@ -1,0 +1,221 @@
+"""The illumination-invariant loss (method.md §2).
+
+``Loss = min(n, m) - tr[C_FM C_MM^-1 C_MF C_FF^-1]`` where F holds the photo's ``n`` attributes
+per pixel and M the rendered model's ``m`` attributes. The trace is the sum of the squared
+canonical correlations between F and M, so the loss lies in ``[0, min(n, m)]``, is zero iff an
+affine map sends M exactly onto F, and is unchanged by any regular linear map of F or of M.
+
+Singular covariances (a flat-shaded model, a constant photo, a model covering every pixel) are
+handled with a spectral pseudo-inverse: directions with no variance carry no information and are
+dropped. A model covering (almost) no pixel scores the maximum ``min(n, m)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from .render import Frame
+
+__all__ = [
+    "PhotoTarget",
+    "InvariantLoss",
+    "invariant_loss",
+    "loss_from_moments",
+    "normal_channels",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+# Relative eigenvalue below which a covariance direction counts as empty.
+_RTOL = 1e-12
+
+
+@dataclass(frozen=True)
+class PhotoTarget:
+    """A photo prepared for scoring at one resolution.
+
+    Parameters
+    ----------
+    image : (H, W, n) float64
+        Photo attributes, background pixels already zeroed.
+    weights : (H, W) float64
+        Per-pixel weight (1 for a plain image).
+    foreground : (H, W) bool
+        Pixels believed to show the vehicle (all True when unknown).
+    """
+
+    image: FloatArray
+    weights: FloatArray
+    foreground: npt.NDArray[np.bool_]
+    _flat: dict[str, FloatArray] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def height(self) -> int:
+        return int(self.image.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.image.shape[1])
+
+    @property
+    def channels(self) -> int:
+        return int(self.image.shape[2])
+
+    def gray(self) -> FloatArray:
+        """(H, W) luminance of the image (the image itself when n = 1)."""
+        if "gray" not in self._flat:
+            img = self.image
+            g = img[..., 0] if img.shape[2] == 1 else img @ np.array([0.299, 0.587, 0.114])[: img.shape[2]]
+            self._flat["gray"] = np.ascontiguousarray(g)
+        return self._flat["gray"]
+
+
+def _inv_sqrt(cov: FloatArray) -> FloatArray:
+    """Columns spanning cov's range, scaled so that ``W.T @ cov @ W = I``; shape (k, r)."""
+    evals, evecs = np.linalg.eigh(cov)
+    top = float(evals[-1]) if evals.size else 0.0
+    if not np.isfinite(top) or top <= 0.0:
+        return np.zeros((cov.shape[0], 0))
+    keep = evals > _RTOL * top
+    return evecs[:, keep] / np.sqrt(evals[keep])
+
+
+def loss_from_moments(
+    sw: float,
+    s_f: FloatArray,
+    s_m: FloatArray,
+    s_ff: FloatArray,
+    s_fm: FloatArray,
+    s_mm: FloatArray,
+) -> float:
+    """The invariant loss from weighted raw moments.
+
+    Parameters
+    ----------
+    sw : float
+        Sum of weights over the pixel set.
+    s_f, s_m : (n,), (m,)
+        Weighted sums of F and M.
+    s_ff, s_fm, s_mm : (n, n), (n, m), (m, m)
+        Weighted sums of the outer products F F^T, F M^T, M M^T.
+    """
+    n, m = s_fm.shape
+    worst = float(min(n, m))
+    if sw <= 0.0:
+        return worst
+    mean_f = s_f / sw
+    mean_m = s_m / sw
+    c_ff = s_ff / sw - np.outer(mean_f, mean_f)
+    c_mm = s_mm / sw - np.outer(mean_m, mean_m)
+    c_fm = s_fm / sw - np.outer(mean_f, mean_m)
+    w_f = _inv_sqrt(c_ff)
+    w_m = _inv_sqrt(c_mm)
+    if w_f.shape[1] == 0 or w_m.shape[1] == 0:
+        return worst
+    t = w_f.T @ c_fm @ w_m
+    explained = float(np.sum(t * t))
+    return float(min(max(worst - explained, 0.0), worst))
+
+
+def invariant_loss(
+    f: npt.ArrayLike, m: npt.ArrayLike, weights: npt.ArrayLike | None = None
+) -> float:
+    """The invariant loss between two sets of per-pixel attributes.
+
+    Parameters
+    ----------
+    f : (N, n) or (N,)
+        Photo attributes.
+    m : (N, m) or (N,)
+        Model attributes.
+    weights : (N,), optional
+        Non-negative pixel weights.
+    """
+    fa = np.asarray(f, dtype=np.float64)
+    ma = np.asarray(m, dtype=np.float64)
+    fa = fa[:, None] if fa.ndim == 1 else fa
+    ma = ma[:, None] if ma.ndim == 1 else ma
+    if fa.shape[0] != ma.shape[0]:
+        raise ValueError(f"f has {fa.shape[0]} pixels but m has {ma.shape[0]}")
+    w = np.ones(fa.shape[0]) if weights is None else np.asarray(weights, dtype=np.float64)
+    fw = fa * w[:, None]
+    mw = ma * w[:, None]
+    return loss_from_moments(
+        float(w.sum()), fw.sum(0), mw.sum(0), fw.T @ fa, fw.T @ ma, mw.T @ ma
+    )
+
+
+def normal_channels(frame: Frame) -> npt.NDArray[np.float32]:
+    """The paper's m = 4 channels (k_a, k_d * normal) on the covered pixels; shape (N, 4)."""
+    return frame.covered(frame.attrs)
+
+
+def part_channels(frame: Frame) -> npt.NDArray[np.float32]:
+    """(k_a, k_d * normal) plus one indicator per material part on the covered pixels."""
+    base = frame.covered(frame.attrs)
+    labels = frame.covered(frame.labels)
+    onehot = (labels[:, None] == np.arange(1, frame.n_parts + 1)[None, :]).astype(np.float32)
+    return np.concatenate([base, onehot], axis=1)
+
+
+ChannelFn = Callable[[Frame], npt.NDArray[np.floating]]
+
+
+class InvariantLoss:
+    """The invariant loss bound to one photo; evaluating it costs O(silhouette pixels).
+
+    Parameters
+    ----------
+    target : PhotoTarget
+        The photo; its moments are accumulated once here, in float64.
+    channels : callable, keyword-only
+        Maps a rendered frame to the model attributes of its covered pixels, shape (N, m).
+    min_pixels : int, keyword-only
+        A model covering fewer pixels scores the maximum.
+    """
+
+    name = "invariant"
+
+    def __init__(
+        self, target: PhotoTarget, *, channels: ChannelFn = normal_channels, min_pixels: int = 16
+    ) -> None:
+        self.target = target
+        self.channels = channels
+        self.min_pixels = min_pixels
+        h, w, n = target.image.shape
+        weights = target.weights.reshape(-1).astype(np.float64)
+        photo = self._photo_attributes(target).reshape(h * w, -1)
+        self._w = weights
+        self._fw = photo * weights[:, None]
+        self._sw = float(weights.sum())
+        self._s_f = self._fw.sum(0)
+        self._s_ff = self._fw.T @ photo
+        self.n = photo.shape[1]
+
+    @staticmethod
+    def _photo_attributes(target: PhotoTarget) -> FloatArray:
+        return target.image
+
+    def max_value(self, m: int) -> float:
+        return float(min(self.n, m))
+
+    def __call__(self, frame: Frame) -> float:
+        attrs = np.asarray(self.channels(frame), dtype=np.float64)
+        m = attrs.shape[1]
+        if attrs.shape[0] < self.min_pixels:
+            return self.max_value(m)
+        idx = frame.covered_flat_indices()
+        w = self._w[idx]
+        mw = attrs * w[:, None]
+        return loss_from_moments(
+            self._sw,
+            self._s_f,
+            mw.sum(0),
+            self._s_ff,
+            self._fw[idx].T @ attrs,
+            mw.T @ attrs,
+        )

@@ -1,0 +1,290 @@
+"""Loading vehicle meshes (OBJ, PLY, OFF, STL, GLB/GLTF) into render-ready parts.
+
+Every geometry of the file becomes a :class:`Part` in the mesh file's own coordinates (scene
+transforms applied). A part knows its material kind (body, glass, tyre, wheel, light, other),
+guessed from geometry and material names, its albedo (material colour, vertex colours) and,
+where the file has one, its texture. Shading normals survive inconsistent face winding: the
+winding is repaired where the surface is connected, and parts that stay inconsistent are
+flat-shaded; the renderer turns every normal towards the camera.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import trimesh
+
+from .errors import EmptyMeshError, ModelError
+
+__all__ = ["KINDS", "Part", "Mesh", "load_mesh", "classify_part"]
+
+log = logging.getLogger(__name__)
+
+KINDS: tuple[str, ...] = ("body", "glass", "tyre", "wheel", "light", "other")
+_KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("glass", ("glass", "window", "windshield", "windscreen", "glazing")),
+    ("tyre", ("tyre", "tire", "rubber")),
+    ("wheel", ("wheel", "rim", "hub")),
+    ("light", ("light", "lamp", "headl", "taill", "indicator")),
+    ("other", ("interior", "seat", "dashboard", "steering")),
+)
+_LUMA = np.array([0.299, 0.587, 0.114])
+_uid = itertools.count(1)
+_CREASE = np.radians(35.0)
+
+
+def classify_part(*names: str | None) -> str:
+    """Material kind of a part from its geometry and material names; 'body' when none match."""
+    text = " ".join(n.lower() for n in names if n)
+    for kind, words in _KEYWORDS:
+        if any(w in text for w in words):
+            return kind
+    return "body"
+
+
+@dataclass(frozen=True, eq=False)
+class Part:
+    """One material group of a mesh, ready for rendering.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64, mesh units, mesh frame
+    normals : (V, 3) float32, unit, mesh frame (sign is irrelevant)
+    faces : (F, 3) uint32
+    uv : (V, 2) float32 or None
+    albedo : (V,) float32, gray reflectance in [0, 1]
+    texture : (h, w, 3) uint8 or None, multiplies the albedo
+    """
+
+    name: str
+    kind: str
+    vertices: npt.NDArray[np.float64]
+    normals: npt.NDArray[np.float32]
+    faces: npt.NDArray[np.uint32]
+    albedo: npt.NDArray[np.float32]
+    uv: npt.NDArray[np.float32] | None = None
+    texture: npt.NDArray[np.uint8] | None = None
+
+    @property
+    def label(self) -> int:
+        """1-based index of the part's kind in :data:`KINDS` (0 is background)."""
+        return KINDS.index(self.kind) + 1
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """A vehicle mesh as a list of parts; ``key`` identifies it for GPU buffer caches."""
+
+    parts: tuple[Part, ...]
+    source: str = ""
+    key: int = field(default_factory=lambda: next(_uid))
+
+    def __post_init__(self) -> None:
+        if self.n_faces == 0:
+            raise EmptyMeshError(f"mesh {self.source or '(in memory)'} has no faces")
+
+    @property
+    def n_faces(self) -> int:
+        return int(sum(len(p.faces) for p in self.parts))
+
+    @property
+    def n_vertices(self) -> int:
+        return int(sum(len(p.vertices) for p in self.parts))
+
+    @property
+    def vertices(self) -> npt.NDArray[np.float64]:
+        """All vertices (N, 3), mesh frame."""
+        return np.concatenate([p.vertices for p in self.parts])
+
+    @property
+    def bounds(self) -> npt.NDArray[np.float64]:
+        """Axis-aligned bounds (2, 3): min and max corner."""
+        v = self.vertices
+        return np.stack([v.min(0), v.max(0)])
+
+    @property
+    def box_corners(self) -> npt.NDArray[np.float64]:
+        """The 8 corners (8, 3) of the axis-aligned bounding box."""
+        lo, hi = self.bounds
+        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+    @property
+    def sphere(self) -> tuple[npt.NDArray[np.float64], float]:
+        """Centre (3,) and radius of a sphere enclosing the mesh."""
+        lo, hi = self.bounds
+        centre = 0.5 * (lo + hi)
+        return centre, float(np.linalg.norm(self.vertices - centre, axis=1).max())
+
+    def sample_points(self, count: int = 2000, seed: int = 0) -> npt.NDArray[np.float64]:
+        """Up to ``count`` vertices (N, 3) chosen at random, for error metrics."""
+        v = self.vertices
+        if len(v) <= count:
+            return v
+        return v[np.random.default_rng(seed).choice(len(v), count, replace=False)]
+
+    def decimated(self, max_faces: int) -> Mesh:
+        """A coarser copy with at most about ``max_faces`` faces; textures folded into albedo."""
+        if self.n_faces <= max_faces:
+            return self
+        import fast_simplification
+
+        ratio = max_faces / self.n_faces
+        parts = []
+        for p in self.parts:
+            albedo = _mean_albedo(p)
+            if len(p.faces) < 64:
+                parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
+                continue
+            pts, tris = fast_simplification.simplify(
+                p.vertices.astype(np.float64), p.faces.astype(np.int64), target_reduction=1.0 - ratio
+            )
+            if len(tris) == 0:
+                continue
+            tm = trimesh.Trimesh(pts, tris, process=False)
+            verts, normals, faces = _shading_geometry(tm)
+            parts.append(
+                Part(p.name, p.kind, verts, normals, faces, np.full(len(verts), albedo, np.float32))
+            )
+        return Mesh(tuple(parts), source=f"{self.source} (decimated to {max_faces})")
+
+
+def _mean_albedo(part: Part) -> float:
+    base = float(part.albedo.mean()) if part.albedo.size else 1.0
+    if part.texture is None:
+        return base
+    return base * float((part.texture.reshape(-1, 3) @ _LUMA).mean() / 255.0)
+
+
+class _SearchResolver(trimesh.resolvers.FilePathResolver):
+    """Finds texture files by relative path, then by base name in extra folders."""
+
+    def __init__(self, mesh_path: Path, extra_dirs: Sequence[Path]) -> None:
+        super().__init__(str(mesh_path))
+        self._dirs = [mesh_path.parent, *extra_dirs]
+
+    def get(self, name: str) -> bytes:
+        base = name.replace("\\", "/").split("/")[-1]
+        candidates = [d / name for d in self._dirs[:1]] + [d / base for d in self._dirs]
+        for c in candidates:
+            if c.is_file():
+                return c.read_bytes()
+        for d in self._dirs:
+            if d.is_dir():
+                for f in d.iterdir():
+                    if f.name.lower() == base.lower():
+                        return f.read_bytes()
+        raise FileNotFoundError(name)
+
+
+def _shading_geometry(
+    tm: trimesh.Trimesh,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
+    """Vertices, unit normals and faces; flat-shaded when the winding cannot be made consistent."""
+    if not tm.is_winding_consistent:
+        trimesh.repair.fix_winding(tm)
+    if tm.is_winding_consistent:
+        # Split vertices along creases sharper than _CREASE so panels keep their own normals.
+        smooth = trimesh.graph.smooth_shade(tm, angle=_CREASE)
+        normals = np.asarray(smooth.vertex_normals, dtype=np.float32)
+        return np.asarray(smooth.vertices, np.float64), normals, np.asarray(smooth.faces, np.uint32)
+    faces = np.asarray(tm.faces)
+    verts = np.asarray(tm.vertices, np.float64)[faces.reshape(-1)]
+    normals = np.repeat(np.asarray(tm.face_normals, np.float32), 3, axis=0)
+    return verts, normals, np.arange(len(verts), dtype=np.uint32).reshape(-1, 3)
+
+
+def _part_from_trimesh(name: str, tm: trimesh.Trimesh) -> Part | None:
+    tm.remove_unreferenced_vertices()
+    if len(tm.faces) == 0:
+        return None
+    visual = tm.visual
+    material = getattr(visual, "material", None)
+    mat_name = getattr(material, "name", None)
+    kind = classify_part(name, mat_name)
+    uv = getattr(visual, "uv", None)
+    texture = None
+    image = getattr(material, "image", None) if material is not None else None
+    if image is None and material is not None:
+        image = getattr(material, "baseColorTexture", None)
+    albedo_const = _material_gray(material)
+    vertex_albedo = None
+    if isinstance(visual, trimesh.visual.ColorVisuals) and visual.kind in ("vertex", "face"):
+        vertex_albedo = (np.asarray(visual.vertex_colors, np.float64)[:, :3] @ _LUMA / 255.0).astype(np.float32)
+    if uv is not None and image is not None and len(uv) == len(tm.vertices):
+        texture = np.asarray(image.convert("RGB"), dtype=np.uint8)
+        uv = np.asarray(uv, np.float32)
+        # Texture coordinates are per vertex; keep the file's vertices so they stay aligned.
+        verts = np.asarray(tm.vertices, np.float64)
+        faces = np.asarray(tm.faces, np.uint32)
+        normals = np.asarray(tm.vertex_normals, np.float32)
+    else:
+        uv = None
+        if vertex_albedo is not None:
+            tm = trimesh.Trimesh(tm.vertices, tm.faces, process=False)
+        verts, normals, faces = _shading_geometry(tm)
+        if vertex_albedo is not None and len(vertex_albedo) != len(verts):
+            vertex_albedo = None
+    albedo = vertex_albedo if vertex_albedo is not None else np.full(len(verts), albedo_const, np.float32)
+    return Part(name, kind, verts, normals, faces, albedo.astype(np.float32), uv, texture)
+
+
+def _material_gray(material: object) -> float:
+    """Gray diffuse reflectance of a trimesh material (1 when it has none)."""
+    if material is None:
+        return 1.0
+    colour = getattr(material, "diffuse", None)
+    if colour is None:
+        colour = getattr(material, "baseColorFactor", None)
+    if colour is None:
+        return 1.0
+    rgb = np.asarray(colour, np.float64).reshape(-1)[:3]
+    if rgb.max() > 1.0:
+        rgb = rgb / 255.0
+    return float(np.clip(rgb @ _LUMA, 0.02, 1.0))
+
+
+def load_mesh(path: str | Path, *, texture_dirs: Sequence[str | Path] = ()) -> Mesh:
+    """Load a mesh file into parts in the file's own coordinates and units.
+
+    Parameters
+    ----------
+    path : str or Path
+        OBJ, PLY, OFF, STL, GLB or GLTF file.
+    texture_dirs : sequence of paths, keyword-only
+        Extra folders searched for texture images by base name.
+
+    Raises
+    ------
+    ModelError
+        The file is missing or cannot be parsed.
+    EmptyMeshError
+        The file holds no triangles.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ModelError(f"mesh file {p} does not exist")
+    resolver = _SearchResolver(p, [Path(d) for d in texture_dirs])
+    try:
+        scene = trimesh.load(str(p), force="scene", resolver=resolver)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise ModelError(f"cannot load mesh {p.name}: {exc}") from None
+    parts: list[Part] = []
+    for node in scene.graph.nodes_geometry:
+        transform, geom_name = scene.graph[node]
+        geom = scene.geometry.get(geom_name)
+        if not isinstance(geom, trimesh.Trimesh):
+            continue
+        tm = geom.copy()
+        tm.apply_transform(transform)
+        part = _part_from_trimesh(str(geom_name), tm)
+        if part is not None:
+            parts.append(part)
+    if not parts:
+        raise EmptyMeshError(f"mesh {p.name} has no faces")
+    return Mesh(tuple(parts), source=str(p))

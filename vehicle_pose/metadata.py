@@ -1,0 +1,252 @@
+"""Vehicle model metadata (method.md §4) and its estimation from the mesh.
+
+A model's JSON file names its mesh and gives, in the mesh's own coordinates and units, the rear
+and front axle centres, the axle direction (towards the vehicle's left), the track width and the
+wheel radius. Whatever is missing is estimated from the mesh, given its up and forward axes, and
+listed in ``estimated``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import ModelError
+from .pose import Side, SideGeometry
+
+__all__ = ["WheelGeometry", "ModelInfo", "parse_axis", "estimate_wheels"]
+
+FloatArray = npt.NDArray[np.float64]
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def parse_axis(text: str) -> FloatArray:
+    """A signed axis such as ``+z`` or ``-y`` as a unit vector (3,)."""
+    s = str(text).strip().lower()
+    sign = -1.0 if s.startswith("-") else 1.0
+    name = s.lstrip("+-")
+    if name not in _AXES or len(s) - len(name) > 1:
+        raise ModelError(f"axis {text!r} is not one of +x, -x, +y, -y, +z, -z")
+    v = np.zeros(3)
+    v[_AXES[name]] = sign
+    return v
+
+
+@dataclass(frozen=True)
+class WheelGeometry:
+    """Axle geometry in mesh coordinates and units.
+
+    Attributes
+    ----------
+    rear_axle_center, front_axle_center : (3,) float64
+        Midpoints between the left and right wheel centres of each axle.
+    axle_direction : (3,) float64
+        Unit axle direction towards the vehicle's left.
+    track_width : float
+        Distance between the left and right wheel centres.
+    wheel_radius : float
+    """
+
+    rear_axle_center: FloatArray
+    front_axle_center: FloatArray
+    axle_direction: FloatArray
+    track_width: float
+    wheel_radius: float
+
+    def side(self, side: Side) -> SideGeometry:
+        """Wheel centres and outward axle of one side; the axle is made orthogonal to the wheelbase."""
+        left = np.asarray(self.axle_direction, dtype=np.float64)
+        b = self.front_axle_center - self.rear_axle_center
+        b = b / np.linalg.norm(b)
+        left = left - (left @ b) * b
+        left /= np.linalg.norm(left)
+        a = left if side == "left" else -left
+        half = 0.5 * self.track_width * a
+        return SideGeometry(self.rear_axle_center + half, self.front_axle_center + half, a)
+
+    def wheel_centres(self) -> FloatArray:
+        """The four wheel centres (4, 3): rear-left, front-left, rear-right, front-right."""
+        left, right = self.side("left"), self.side("right")
+        return np.stack([left.rear, left.front, right.rear, right.front])
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "rear_axle_center": np.asarray(self.rear_axle_center).tolist(),
+            "front_axle_center": np.asarray(self.front_axle_center).tolist(),
+            "axle_direction": np.asarray(self.axle_direction).tolist(),
+            "track_width": float(self.track_width),
+            "wheel_radius": float(self.wheel_radius),
+        }
+
+
+_WHEEL_KEYS = ("rear_axle_center", "front_axle_center", "axle_direction", "track_width", "wheel_radius")
+
+
+def estimate_wheels(vertices: npt.ArrayLike, up: FloatArray, forward: FloatArray) -> WheelGeometry:
+    """Estimate the axle geometry of a car-like mesh from its vertices.
+
+    The lower envelope of the side view (height of the lowest vertex along the vehicle's length)
+    touches the ground under each wheel; the contact points give the axle positions and the
+    curvature of the envelope around them the wheel radius. The lateral spread of the vertices
+    inside the wheel circles gives the track.
+
+    Parameters
+    ----------
+    vertices : (N, 3)
+        Mesh vertices, mesh frame.
+    up, forward : (3,)
+        Unit vectors of the vehicle's up and forward directions in the mesh frame.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    up = np.asarray(up, np.float64)
+    fwd = np.asarray(forward, np.float64)
+    left = np.cross(up, fwd)
+    x, y, z = v @ fwd, v @ left, v @ up
+    if len(v) < 8 or np.ptp(x) <= 0 or np.ptp(z) <= 0:
+        raise ModelError("cannot estimate wheels: the mesh has no extent along its forward or up axis")
+    length = float(np.ptp(x))
+    ground = float(z.min())
+    x_mid = 0.5 * (x.min() + x.max())
+    y_mid = 0.5 * (y.min() + y.max())
+    bins = np.linspace(x.min(), x.max(), 201)
+    idx = np.clip(np.digitize(x, bins) - 1, 0, 199)
+    env = np.full(200, np.inf)
+    np.minimum.at(env, idx, z - ground)
+    centres_x = 0.5 * (bins[:-1] + bins[1:])
+    ok = np.isfinite(env)
+    tol = 0.01 * length
+
+    def contact(half: npt.NDArray[np.bool_]) -> float:
+        sel = half & ok
+        lowest = env[sel].min()
+        xs = centres_x[sel][env[sel] <= lowest + tol]
+        return float(np.median(xs))
+
+    rear_x = contact(centres_x < x_mid)
+    front_x = contact(centres_x >= x_mid)
+
+    h_all = z - ground
+
+    def radius(xc: float) -> float:
+        r = 0.07 * length
+        for _ in range(4):
+            near = (np.abs(x - xc) < 0.8 * r) & (h_all < r)
+            hull = _lower_hull(np.column_stack([x[near] - xc, h_all[near]]))
+            hull = hull[hull[:, 1] > 0.004 * length]
+            if len(hull) < 2:
+                break
+            d, h = hull[:, 0], hull[:, 1]
+            r = float(np.median((d * d + h * h) / (2.0 * h)))
+        return float(np.clip(r, 0.03 * length, 0.15 * length))
+
+    r_rear, r_front = radius(rear_x), radius(front_x)
+    wheel_r = 0.5 * (r_rear + r_front)
+
+    def lateral(xc: float) -> float:
+        inside = ((x - xc) ** 2 + (z - ground - wheel_r) ** 2 < (0.95 * wheel_r) ** 2) & (z < ground + wheel_r)
+        ys = np.abs(y[inside] - y_mid)
+        if ys.size < 4:
+            return 0.4 * float(np.ptp(y))
+        outer = ys[ys > 0.5 * ys.max()]
+        return float(0.5 * (outer.min() + outer.max()))
+
+    half_track = 0.5 * (lateral(rear_x) + lateral(front_x))
+    height = ground + wheel_r
+
+    def point(xc: float) -> FloatArray:
+        return xc * fwd + y_mid * left + height * up
+
+    return WheelGeometry(point(rear_x), point(front_x), left, 2.0 * half_track, wheel_r)
+
+
+def _lower_hull(points: FloatArray) -> FloatArray:
+    """Lower convex hull (monotone chain) of 2-D points (N, 2), sorted by x."""
+    pts = points[np.lexsort((points[:, 1], points[:, 0]))]
+    hull: list[FloatArray] = []
+    for pt in pts:
+        while len(hull) >= 2:
+            (x1, y1), (x2, y2) = hull[-2], hull[-1]
+            if (x2 - x1) * (pt[1] - y1) - (y2 - y1) * (pt[0] - x1) <= 0:
+                hull.pop()
+            else:
+                break
+        hull.append(pt)
+    return np.array(hull).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What the library knows of one vehicle model.
+
+    ``mesh_path`` is absolute; ``estimated`` lists the metadata fields estimated from the mesh.
+    """
+
+    id: str
+    name: str
+    mesh_path: Path
+    units: str
+    meters_per_unit: float
+    up: str
+    forward: str
+    wheels: WheelGeometry | None
+    estimated: tuple[str, ...] = ()
+    texture_dirs: tuple[Path, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> ModelInfo:
+        """Read a model's metadata file; the mesh path is relative to the file."""
+        p = Path(path)
+        try:
+            data = json.loads(p.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ModelError(f"cannot read model metadata {p}: {exc}") from None
+        return cls.from_dict(data, base=p.parent)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, base: Path) -> ModelInfo:
+        for key in ("id", "mesh"):
+            if key not in data:
+                raise ModelError(f"model metadata lacks {key!r}")
+        wheels = None
+        w = data.get("wheels") or {}
+        if all(k in w for k in _WHEEL_KEYS):
+            wheels = WheelGeometry(
+                np.asarray(w["rear_axle_center"], np.float64),
+                np.asarray(w["front_axle_center"], np.float64),
+                np.asarray(w["axle_direction"], np.float64),
+                float(w["track_width"]),
+                float(w["wheel_radius"]),
+            )
+        known = {"id", "name", "mesh", "units", "meters_per_unit", "up", "forward", "wheels", "estimated", "texture_dirs"}
+        return cls(
+            id=str(data["id"]),
+            name=str(data.get("name", data["id"])),
+            mesh_path=(base / data["mesh"]).resolve(),
+            units=str(data.get("units", "m")),
+            meters_per_unit=float(data.get("meters_per_unit", 1.0)),
+            up=str(data.get("up", "+z")),
+            forward=str(data.get("forward", "+x")),
+            wheels=wheels,
+            estimated=tuple(data.get("estimated", ())),
+            texture_dirs=tuple((base / d).resolve() for d in data.get("texture_dirs", ())),
+            extra={k: v for k, v in data.items() if k not in known},
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "name": self.name,
+            "mesh": str(self.mesh_path),
+            "units": self.units,
+            "meters_per_unit": self.meters_per_unit,
+            "up": self.up,
+            "forward": self.forward,
+            "wheels": self.wheels.to_dict() if self.wheels is not None else None,
+            "estimated": list(self.estimated),
+        }

@@ -1,0 +1,220 @@
+"""Procedurally built cars: body, glass, tyres, rims and lights as separate material parts.
+
+The body is a loft of rounded cross-sections along the car's length, following a side profile
+and arching over the wheels; the greenhouse narrows towards the roof and its side faces form the
+glass part. Axes: forward +x, left +y, up +z, metres, ground at z = 0. The wheel metadata of a
+generated car is exact.
+
+Run ``python -m vehicle_pose.procedural DIR`` to (re)write the shipped models into DIR.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import trimesh
+
+from .metadata import WheelGeometry
+
+__all__ = ["CarSpec", "SEDAN", "build_car", "write_model"]
+
+
+@dataclass(frozen=True)
+class CarSpec:
+    """Shape of a procedural car; lengths in metres.
+
+    ``top`` is the side profile: (x, height of the upper surface) pairs from the front bumper
+    to the rear bumper. ``glass_x`` is the length range of the greenhouse.
+    """
+
+    id: str
+    name: str
+    length: float
+    width: float
+    wheelbase: float
+    track: float
+    wheel_radius: float
+    tyre_width: float
+    clearance: float
+    belt: float
+    roof_inset: float
+    top: tuple[tuple[float, float], ...]
+    glass_x: tuple[float, float]
+    body_albedo: float = 0.7
+    stations: int = 72
+    ring: int = 48
+
+
+SEDAN = CarSpec(
+    id="sedan",
+    name="Procedural sedan",
+    length=4.6,
+    width=1.8,
+    wheelbase=2.7,
+    track=1.55,
+    wheel_radius=0.32,
+    tyre_width=0.21,
+    clearance=0.18,
+    belt=0.98,
+    roof_inset=0.22,
+    top=((2.3, 0.62), (2.2, 0.84), (0.95, 0.98), (0.15, 1.44), (-0.95, 1.44), (-1.6, 1.04), (-2.25, 1.0), (-2.3, 0.7)),
+    glass_x=(-1.55, 0.9),
+)
+
+
+def _profile(spec: CarSpec, x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Bottom and top heights of the body at stations x."""
+    px = np.array([p[0] for p in spec.top])[::-1]
+    pz = np.array([p[1] for p in spec.top])[::-1]
+    top = np.interp(x, px, pz)
+    half = spec.length / 2
+    bottom = spec.clearance + 0.2 * np.clip((np.abs(x) - (half - 0.45)) / 0.45, 0.0, 1.0)
+    arch = spec.wheel_radius + 0.06
+    for xa in (-spec.wheelbase / 2, spec.wheelbase / 2):
+        d = np.abs(x - xa)
+        over = np.where(d < arch, spec.wheel_radius + np.sqrt(np.maximum(arch * arch - d * d, 0.0)), 0.0)
+        bottom = np.maximum(bottom, over)
+    return bottom, np.maximum(top, bottom + 0.1)
+
+
+def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
+    half = spec.length / 2
+    xs = np.linspace(half, -half, spec.stations)
+    bottom, top = _profile(spec, xs)
+    ang = np.linspace(0.0, 2 * np.pi, spec.ring, endpoint=False)
+    cy = np.sign(np.cos(ang)) * np.abs(np.cos(ang)) ** 0.5
+    cz = np.sign(np.sin(ang)) * np.abs(np.sin(ang)) ** 0.5
+    verts = []
+    hw = spec.width / 2
+    for x, z0, z1 in zip(xs, bottom, top):
+        zc, hz = 0.5 * (z0 + z1), 0.5 * (z1 - z0)
+        z = zc + hz * cz
+        taper = np.clip((z - spec.belt) / max(z1 - spec.belt, 1e-6), 0.0, 1.0)
+        end = 1.0 - 0.12 * np.clip((abs(x) - (half - 0.3)) / 0.3, 0.0, 1.0)
+        y = hw * end * cy * (1.0 - spec.roof_inset * taper)
+        verts.append(np.column_stack([np.full(spec.ring, x), y, z]))
+    v = np.concatenate(verts)
+    n, r = spec.stations, spec.ring
+    faces = []
+    for i in range(n - 1):
+        for j in range(r):
+            a, b = i * r + j, i * r + (j + 1) % r
+            c, d = a + r, b + r
+            faces += [(a, c, b), (b, c, d)]
+    caps_v = [v[:r].mean(0), v[-r:].mean(0)]
+    front_c, rear_c = len(v), len(v) + 1
+    v = np.vstack([v, caps_v])
+    for j in range(r):
+        faces.append((front_c, (j + 1) % r, j))
+        last = (n - 1) * r
+        faces.append((rear_c, last + j, last + (j + 1) % r))
+    faces = np.array(faces)
+    cent = v[faces].mean(1)
+    seg = np.array([np.sin(ang[j]) for j in range(r)])
+    ring_j = np.where(faces[:, 0] < n * r, faces[:, 0] % r, 0)
+    roofish = seg[ring_j] > 0.93
+    glass = (
+        (cent[:, 0] > spec.glass_x[0])
+        & (cent[:, 0] < spec.glass_x[1])
+        & (cent[:, 2] > spec.belt + 0.04)
+        & ~roofish
+        & (faces[:, 0] < n * r)
+    )
+    body = trimesh.Trimesh(v, faces[~glass], process=True)
+    glass_mesh = trimesh.Trimesh(v, faces[glass], process=True)
+    body.remove_unreferenced_vertices()
+    glass_mesh.remove_unreferenced_vertices()
+    return body, glass_mesh
+
+
+def _wheel_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
+    parts = []
+    rot = trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])
+    for axle, xa in (("r", -spec.wheelbase / 2), ("f", spec.wheelbase / 2)):
+        for side, sgn in (("l", 1.0), ("r", -1.0)):
+            centre = np.array([xa, sgn * spec.track / 2, spec.wheel_radius])
+            tyre = trimesh.creation.cylinder(radius=spec.wheel_radius, height=spec.tyre_width, sections=40)
+            tyre.apply_transform(rot)
+            tyre.apply_translation(centre)
+            rim = trimesh.creation.cylinder(radius=0.62 * spec.wheel_radius, height=0.03, sections=40)
+            rim.apply_transform(rot)
+            rim.apply_translation(centre + [0.0, sgn * (spec.tyre_width / 2 + 0.005), 0.0])
+            parts += [(f"tyre_{axle}{side}", tyre), (f"rim_{axle}{side}", rim)]
+    return parts
+
+
+def _light_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
+    half = spec.length / 2
+    bottom, top = _profile(spec, np.array([half - 0.08, -half + 0.08]))
+    parts = []
+    for name, x, z in (("headlight", half - 0.06, top[0] - 0.1), ("taillight", -half + 0.05, top[1] - 0.12)):
+        for side, sgn in (("l", 1.0), ("r", -1.0)):
+            box = trimesh.creation.box(extents=(0.12, 0.34, 0.09))
+            box.apply_translation([x, sgn * spec.width * 0.3, z])
+            parts.append((f"{name}_{side}", box))
+    return parts
+
+
+_ALBEDO = {"glass": 0.12, "tyre": 0.06, "rim": 0.6, "headlight": 0.9, "taillight": 0.3}
+
+
+def build_car(spec: CarSpec = SEDAN) -> tuple[trimesh.Scene, WheelGeometry]:
+    """The car as a trimesh scene of named, coloured parts, and its exact wheel geometry."""
+    body, glass = _body_and_glass(spec)
+    named = [("body", body), ("glass", glass), *_wheel_parts(spec), *_light_parts(spec)]
+    scene = trimesh.Scene()
+    for name, mesh in named:
+        gray = spec.body_albedo if name == "body" else _ALBEDO[name.split("_")[0]]
+        g = int(round(255 * gray))
+        mesh.visual = trimesh.visual.TextureVisuals(
+            material=trimesh.visual.material.PBRMaterial(name=name, baseColorFactor=[g, g, g, 255])
+        )
+        scene.add_geometry(mesh, geom_name=name, node_name=name)
+    wheels = WheelGeometry(
+        np.array([-spec.wheelbase / 2, 0.0, spec.wheel_radius]),
+        np.array([spec.wheelbase / 2, 0.0, spec.wheel_radius]),
+        np.array([0.0, 1.0, 0.0]),
+        spec.track,
+        spec.wheel_radius,
+    )
+    return scene, wheels
+
+
+def write_model(spec: CarSpec, root: str | Path) -> Path:
+    """Write ``root/<id>/model.glb`` and ``model.json``; returns the metadata path."""
+    folder = Path(root) / spec.id
+    folder.mkdir(parents=True, exist_ok=True)
+    scene, wheels = build_car(spec)
+    (folder / "model.glb").write_bytes(scene.export(file_type="glb"))
+    meta = {
+        "id": spec.id,
+        "name": spec.name,
+        "mesh": "model.glb",
+        "units": "m",
+        "meters_per_unit": 1.0,
+        "up": "+z",
+        "forward": "+x",
+        "wheels": wheels.to_dict(),
+        "estimated": [],
+        "source": "vehicle_pose.procedural (generated by this project)",
+    }
+    path = folder / "model.json"
+    path.write_text(json.dumps(meta, indent=2) + "\n")
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    root = Path(args[0]) if args else Path(__file__).resolve().parents[1] / "vehicle_models"
+    for spec in (SEDAN,):
+        print(write_model(spec, root))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
