@@ -26,6 +26,7 @@ __all__ = [
     "invariant_loss",
     "loss_from_moments",
     "normal_channels",
+    "part_channels",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -150,16 +151,23 @@ def invariant_loss(
 
 
 def normal_channels(frame: Frame) -> npt.NDArray[np.float32]:
-    """The paper's m = 4 channels (k_a, k_d * normal) on the covered pixels; shape (N, 4)."""
-    return frame.covered(frame.attrs)
+    """(1, k_a, k_d * normal) on the covered pixels; shape (N, 5).
+
+    The leading coverage channel is the paper's k_a of an untextured model. It is kept beside
+    the material albedo k_a because the photo's background is zeroed: a photo whose vehicle
+    region carries an offset (any negative, any lighting with I_0 != 0) is then still an exact
+    affine function of M.
+    """
+    a = frame.covered(frame.attrs)
+    return np.concatenate([np.ones((a.shape[0], 1), np.float32), a], axis=1)
 
 
 def part_channels(frame: Frame) -> npt.NDArray[np.float32]:
-    """(k_a, k_d * normal) plus one indicator per material part on the covered pixels."""
+    """(k_a, k_d * normal) plus one indicator per material kind on the covered pixels."""
     base = frame.covered(frame.attrs)
     labels = frame.covered(frame.labels)
     onehot = (labels[:, None] == np.arange(1, frame.n_parts + 1)[None, :]).astype(np.float32)
-    return np.concatenate([base, onehot], axis=1)
+    return np.concatenate([onehot, base], axis=1)
 
 
 ChannelFn = Callable[[Frame], npt.NDArray[np.floating]]
@@ -195,6 +203,7 @@ class InvariantLoss:
         self._s_f = self._fw.sum(0)
         self._s_ff = self._fw.T @ photo
         self.n = photo.shape[1]
+        self._unit_weights = bool(np.all(weights == 1.0))
 
     @staticmethod
     def _photo_attributes(target: PhotoTarget) -> FloatArray:
@@ -204,18 +213,17 @@ class InvariantLoss:
         return float(min(self.n, m))
 
     def __call__(self, frame: Frame) -> float:
-        attrs = np.asarray(self.channels(frame), dtype=np.float64)
+        attrs = self.channels(frame)
         m = attrs.shape[1]
         if attrs.shape[0] < self.min_pixels:
             return self.max_value(m)
         idx = frame.covered_flat_indices()
-        w = self._w[idx]
-        mw = attrs * w[:, None]
-        return loss_from_moments(
-            self._sw,
-            self._s_f,
-            mw.sum(0),
-            self._s_ff,
-            self._fw[idx].T @ attrs,
-            mw.T @ attrs,
-        )
+        n = self.n
+        left = np.empty((idx.size, 1 + n))
+        left[:, 0] = np.take(self._w, idx)
+        left[:, 1:] = np.take(self._fw, idx, axis=0)
+        mf = attrs.astype(np.float64)
+        cross = left.T @ mf
+        s_m, s_fm = cross[0], cross[1:]
+        s_mm = mf.T @ mf if self._unit_weights else (mf * left[:, :1]).T @ mf
+        return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)

@@ -14,6 +14,7 @@ import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -97,24 +98,24 @@ class Mesh:
     def n_vertices(self) -> int:
         return int(sum(len(p.vertices) for p in self.parts))
 
-    @property
+    @cached_property
     def vertices(self) -> npt.NDArray[np.float64]:
         """All vertices (N, 3), mesh frame."""
         return np.concatenate([p.vertices for p in self.parts])
 
-    @property
+    @cached_property
     def bounds(self) -> npt.NDArray[np.float64]:
         """Axis-aligned bounds (2, 3): min and max corner."""
         v = self.vertices
         return np.stack([v.min(0), v.max(0)])
 
-    @property
+    @cached_property
     def box_corners(self) -> npt.NDArray[np.float64]:
         """The 8 corners (8, 3) of the axis-aligned bounding box."""
         lo, hi = self.bounds
         return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
-    @property
+    @cached_property
     def sphere(self) -> tuple[npt.NDArray[np.float64], float]:
         """Centre (3,) and radius of a sphere enclosing the mesh."""
         lo, hi = self.bounds

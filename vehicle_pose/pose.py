@@ -168,6 +168,8 @@ def theta_to_camera(theta: Theta, geometry: SideGeometry, width: int, height: in
     B = geometry.wheelbase
     z_r = -f * B * wd / dd
     x_r = z_r * np.array([p[0], p[1], 1.0])
+    if z_r + B * u[2] <= 0.0:
+        raise PoseError("degenerate theta: the front wheel lies behind the camera")
     R = np.column_stack([psi, u, np.cross(psi, u)]) @ geometry.model_frame.T
     t = x_r - R @ geometry.rear
     K = np.array([[f, 0.0, c[0]], [0.0, f, c[1]], [0.0, 0.0, 1.0]])

@@ -20,7 +20,7 @@ import numpy.typing as npt
 from .camera import Camera
 from .errors import RenderError
 from .gl import get_context
-from .mesh import KINDS, Mesh
+from .mesh import KINDS, Mesh, Part
 
 __all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes"]
 
@@ -32,11 +32,14 @@ in vec3 in_pos;
 in vec3 in_normal;
 in vec2 in_uv;
 in float in_albedo;
+in float in_label;
 out vec3 v_pos;
 out vec3 v_normal;
 out vec2 v_uv;
 out float v_albedo;
+flat out float v_label;
 void main() {
+    v_label = in_label;
     v_pos = (mv * vec4(in_pos, 1.0)).xyz;
     v_normal = mat3(mv) * in_normal;
     v_uv = in_uv;
@@ -52,11 +55,11 @@ _FRAGMENT_SHADER = """
 #version 330
 uniform sampler2D tex;
 uniform bool use_tex;
-uniform float label;
 in vec3 v_pos;
 in vec3 v_normal;
 in vec2 v_uv;
 in float v_albedo;
+flat in float v_label;
 layout(location = 0) out vec4 out_attr;
 layout(location = 1) out float out_label;
 void main() {
@@ -68,7 +71,7 @@ void main() {
     float k = v_albedo;
     if (use_tex) k *= dot(texture(tex, v_uv).rgb, vec3(0.299, 0.587, 0.114));
     out_attr = vec4(k, k * n);
-    out_label = label;
+    out_label = v_label;
 }
 """
 
@@ -130,22 +133,22 @@ class Frame:
         return cls(np.zeros((0, 0, 4), np.float32), np.zeros((0, 0), np.uint8), 0, 0, width, height)
 
     @cached_property
-    def _rows_cols(self) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-        return np.nonzero(self.labels)
+    def _window_indices(self) -> npt.NDArray[np.intp]:
+        return np.flatnonzero(self.labels)
 
     @property
     def pixel_count(self) -> int:
         """Number of covered pixels."""
-        return int(self._rows_cols[0].size)
+        return int(self._window_indices.size)
 
     def covered(self, arr: npt.NDArray) -> npt.NDArray:
-        """Values of a window-shaped array at the covered pixels, shape (N, ...)."""
-        r, c = self._rows_cols
-        return arr[r, c]
+        """Values of a window-shaped array (h, w, ...) at the covered pixels, shape (N, ...)."""
+        h, w = self.labels.shape
+        return np.take(arr.reshape((h * w,) + arr.shape[2:]), self._window_indices, axis=0)
 
     def covered_flat_indices(self) -> npt.NDArray[np.intp]:
         """Row-major indices (N,) of the covered pixels in the whole image."""
-        r, c = self._rows_cols
+        r, c = np.divmod(self._window_indices, self.labels.shape[1])
         return (r + self.y0) * self.width + (c + self.x0)
 
     def full(self, arr: npt.NDArray, fill: float = 0) -> npt.NDArray:
@@ -162,39 +165,55 @@ class Frame:
 
 
 class _GpuMesh:
-    """Vertex arrays (and textures) of one mesh on the GPU."""
+    """Vertex arrays (and textures) of one mesh on the GPU.
+
+    Untextured parts share one draw call, each textured part gets its own; the material label
+    travels as a vertex attribute.
+    """
 
     def __init__(self, ctx: moderngl.Context, program: moderngl.Program, mesh: Mesh) -> None:
-        self.draws: list[tuple[moderngl.VertexArray, moderngl.Texture | None, float]] = []
+        self.draws: list[tuple[moderngl.VertexArray, moderngl.Texture | None]] = []
         self._resources: list[object] = []
-        for part in mesh.parts:
-            uv = part.uv if part.uv is not None else np.zeros((len(part.vertices), 2), np.float32)
-            data = np.hstack(
-                [
-                    part.vertices.astype(np.float32),
-                    part.normals.astype(np.float32),
-                    uv.astype(np.float32),
-                    part.albedo.astype(np.float32)[:, None],
-                ]
-            )
-            vbo = ctx.buffer(np.ascontiguousarray(data).tobytes())
-            ibo = ctx.buffer(np.ascontiguousarray(part.faces, dtype=np.uint32).tobytes())
+        plain = [p for p in mesh.parts if p.texture is None]
+        groups: list[tuple[list[Part], npt.NDArray[np.uint8] | None]] = [([p], p.texture) for p in mesh.parts if p.texture is not None]
+        if plain:
+            groups.insert(0, (plain, None))
+        for parts, texture in groups:
+            data, faces, offset = [], [], 0
+            for part in parts:
+                n = len(part.vertices)
+                uv = part.uv if part.uv is not None else np.zeros((n, 2), np.float32)
+                data.append(
+                    np.hstack(
+                        [
+                            part.vertices.astype(np.float32),
+                            part.normals.astype(np.float32),
+                            uv.astype(np.float32),
+                            part.albedo.astype(np.float32)[:, None],
+                            np.full((n, 1), part.label, np.float32),
+                        ]
+                    )
+                )
+                faces.append(part.faces.astype(np.uint32) + offset)
+                offset += n
+            vbo = ctx.buffer(np.ascontiguousarray(np.vstack(data)).tobytes())
+            ibo = ctx.buffer(np.ascontiguousarray(np.vstack(faces)).tobytes())
             vao = ctx.vertex_array(
                 program,
-                [(vbo, "3f 3f 2f 1f", "in_pos", "in_normal", "in_uv", "in_albedo")],
+                [(vbo, "3f 3f 2f 1f 1f", "in_pos", "in_normal", "in_uv", "in_albedo", "in_label")],
                 index_buffer=ibo,
                 index_element_size=4,
             )
             tex = None
-            if part.texture is not None:
-                img = np.ascontiguousarray(part.texture)
+            if texture is not None:
+                img = np.ascontiguousarray(texture)
                 tex = ctx.texture((img.shape[1], img.shape[0]), 3, img.tobytes())
                 tex.build_mipmaps()
                 tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
                 tex.repeat_x = tex.repeat_y = True
                 self._resources.append(tex)
             self._resources += [vbo, ibo, vao]
-            self.draws.append((vao, tex, float(part.label)))
+            self.draws.append((vao, tex))
 
     def release(self) -> None:
         for r in self._resources:
@@ -292,11 +311,10 @@ class Renderer:
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         try:
-            for vao, tex, label in self._gpu_mesh(mesh).draws:
+            for vao, tex in self._gpu_mesh(mesh).draws:
                 if tex is not None:
                     tex.use(0)
                 self.program["use_tex"].value = tex is not None
-                self.program["label"].value = label
                 vao.render(moderngl.TRIANGLES)
             attrs = np.frombuffer(fbo.read(viewport=win, components=4, attachment=0, dtype="f4"), np.float32)
             labels = np.frombuffer(fbo.read(viewport=win, components=1, attachment=1, dtype="f4"), np.float32)

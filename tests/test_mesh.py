@@ -1,0 +1,121 @@
+"""Loading meshes of every format, metadata, estimation, levels of detail."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from vehicle_pose.errors import EmptyMeshError, ModelError, UnknownModelError
+from vehicle_pose.library import ModelLibrary, model_from_mesh
+from vehicle_pose.mesh import classify_part, load_mesh
+from vehicle_pose.metadata import estimate_wheels, parse_axis
+from vehicle_pose.procedural import SEDAN, build_car
+
+
+@pytest.mark.parametrize("fmt", ["obj", "ply", "off", "stl", "glb"])
+def test_every_format_loads_in_file_coordinates(tmp_path, fmt):
+    box = trimesh.creation.box(extents=(2, 1, 0.5))
+    box.apply_translation([10.0, -3.0, 1.0])
+    path = tmp_path / f"box.{fmt}"
+    box.export(path)
+    mesh = load_mesh(path)
+    assert mesh.n_faces == 12
+    np.testing.assert_allclose(mesh.bounds, [[9, -3.5, 0.75], [11, -2.5, 1.25]], atol=1e-5)
+
+
+def test_scene_transforms_are_applied(tmp_path):
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.creation.box(extents=(1, 1, 1)), transform=trimesh.transformations.translation_matrix([5, 0, 0]))
+    path = tmp_path / "scene.glb"
+    scene.export(path)
+    assert load_mesh(path).bounds[0, 0] == pytest.approx(4.5)
+
+
+def test_empty_and_missing_meshes_are_clear_errors(tmp_path):
+    empty = tmp_path / "empty.obj"
+    empty.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    with pytest.raises(EmptyMeshError):
+        load_mesh(empty)
+    with pytest.raises(ModelError):
+        load_mesh(tmp_path / "missing.obj")
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"ply\nformat nonsense\n\x00\x01")
+    with pytest.raises(ModelError):
+        load_mesh(garbage)
+
+
+def test_part_kinds_from_names():
+    assert classify_part("Windows") == "glass"
+    assert classify_part("tyre_fl") == "tyre"
+    assert classify_part("Wheels3") == "wheel"
+    assert classify_part("mesh", "HeadLight_mat") == "light"
+    assert classify_part("Hybrid") == "body"
+
+
+def test_shipped_sedan_has_material_parts_and_exact_wheels(sedan):
+    kinds = {p.kind for p in sedan.mesh.parts}
+    assert {"body", "glass", "tyre", "wheel", "light"} <= kinds
+    assert sedan.info.estimated == ()
+    assert sedan.wheels.wheel_radius == pytest.approx(SEDAN.wheel_radius)
+
+
+def test_wheel_estimate_matches_the_generator(sedan):
+    est = estimate_wheels(sedan.mesh.vertices, parse_axis("+z"), parse_axis("+x"))
+    true = sedan.wheels
+    assert np.linalg.norm(est.rear_axle_center - true.rear_axle_center) < 0.03
+    assert np.linalg.norm(est.front_axle_center - true.front_axle_center) < 0.03
+    assert est.wheel_radius == pytest.approx(true.wheel_radius, rel=0.05)
+    assert est.track_width == pytest.approx(true.track_width, rel=0.05)
+
+
+def test_mesh_path_model_reports_estimated_metadata(tmp_path):
+    scene, _ = build_car(SEDAN)
+    # The same car in another frame: up +y, forward -z, centimetres.
+    rot = trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0])
+    scene.apply_transform(rot)
+    scene.apply_scale(100.0)
+    path = tmp_path / "car.glb"
+    scene.export(path)
+    model = model_from_mesh(path, up="+y", forward="+x", units="cm", meters_per_unit=0.01)
+    assert "wheels" in model.info.estimated
+    assert model.wheels.wheel_radius == pytest.approx(32.0, rel=0.05)
+    assert model.wheels.axle_direction @ np.array([0, 0, -1.0]) == pytest.approx(1.0)
+
+
+def test_bad_axes_are_refused(tmp_path):
+    with pytest.raises(ModelError):
+        parse_axis("up")
+    path = tmp_path / "b.ply"
+    trimesh.creation.box().export(path)
+    with pytest.raises(ModelError):
+        model_from_mesh(path, up="+z", forward="-z")
+
+
+def test_library_lookup_and_unknown_ids(tmp_path):
+    lib = ModelLibrary()
+    assert "sedan" in lib.ids()
+    with pytest.raises(UnknownModelError, match="sedan"):
+        lib.load("no-such-car")
+    with pytest.raises(UnknownModelError):
+        lib.load("../vehicle_models/sedan")
+    assert lib.load("sedan") is lib.load("sedan")
+
+
+def test_library_estimates_missing_wheels(tmp_path):
+    scene, _ = build_car(SEDAN)
+    folder = tmp_path / "car"
+    folder.mkdir()
+    (folder / "car.glb").write_bytes(scene.export(file_type="glb"))
+    (folder / "model.json").write_text(json.dumps({"id": "car", "mesh": "car.glb", "up": "+z", "forward": "+x"}))
+    model = ModelLibrary(tmp_path).load("car")
+    assert model.info.estimated == ("wheels",)
+
+
+def test_decimated_level_of_detail(sedan):
+    coarse = sedan.lod(2000)
+    assert coarse.n_faces <= 2600
+    np.testing.assert_allclose(coarse.bounds, sedan.mesh.bounds, atol=0.05)
+    assert sedan.lod(2000) is coarse

@@ -1,0 +1,108 @@
+"""Photo decoding and the command line's exact interface and exit codes."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from vehicle_pose.errors import PhotoError
+from vehicle_pose.photo import decode_photo
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _encode(img: Image.Image, fmt: str, **kw) -> bytes:
+    buf = io.BytesIO()
+    img.save(buf, fmt, **kw)
+    return buf.getvalue()
+
+
+def test_decodes_every_mode():
+    rgb = Image.fromarray(np.random.default_rng(0).integers(0, 255, (20, 30, 3), dtype=np.uint8))
+    for img, fmt in [(rgb, "PNG"), (rgb.convert("L"), "PNG"), (rgb.convert("RGBA"), "PNG"), (rgb.convert("CMYK"), "JPEG"),
+                     (rgb.convert("P"), "PNG"), (Image.fromarray(np.full((20, 30), 40000, np.uint16)), "PNG")]:
+        arr = decode_photo(_encode(img, fmt))
+        assert arr.shape == (20, 30, 3) and arr.dtype == np.uint8
+
+
+def test_exif_orientation_is_applied():
+    img = Image.new("RGB", (40, 20))
+    exif = img.getexif()
+    exif[0x0112] = 6
+    arr = decode_photo(_encode(img, "JPEG", exif=exif))
+    assert arr.shape[:2] == (40, 20)
+
+
+@pytest.mark.parametrize("data", [b"not an image", _encode(Image.new("RGB", (64, 64)), "JPEG")[:200]])
+def test_bad_bytes_are_photo_errors(data):
+    with pytest.raises(PhotoError):
+        decode_photo(data)
+
+
+def test_decompression_bomb_is_refused():
+    with pytest.raises(PhotoError):
+        decode_photo(_encode(Image.new("L", (5000, 5000)), "PNG"), max_pixels=1_000_000)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vehicle_pose.cli", *args], capture_output=True, text=True, cwd=ROOT)
+
+
+@pytest.mark.slow
+def test_cli_registers_the_shipped_sample(tmp_path):
+    out, overlay = tmp_path / "r" / "result.json", tmp_path / "overlay.png"
+    proc = _cli("register", "examples/sedan.jpg", "--model", "sedan", "--init-camera", "examples/sedan_init.json",
+                "--out", str(out), "--overlay", str(overlay))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    assert result["model"]["id"] == "sedan" and result["start"]["source"] == "init_camera"
+    with Image.open(overlay) as img:
+        assert img.size == (800, 600)
+    from conftest import projection_error
+
+    from vehicle_pose import Camera, ModelLibrary
+
+    model = ModelLibrary().load("sedan")
+    truth = Camera.load(ROOT / "examples" / "sedan_truth.json")
+    assert projection_error(model, Camera.from_dict(result["camera"]), truth) < 2.0
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["register", "pyproject.toml", "--model", "sedan", "--out", "x.json"], "not a readable image"),
+        (["register", "missing.jpg", "--model", "sedan", "--out", "x.json"], "cannot read photo"),
+        (["register", "examples/sedan.jpg", "--model", "no-such-car", "--out", "x.json"], "unknown model"),
+        (["register", "examples/sedan.jpg", "--model", "sedan", "--out", "x.json", "--init-camera", "pyproject.toml"], "not valid JSON"),
+        (["register", "examples/sedan.jpg", "--model", "sedan", "--out", "x.json", "--bbox", "1,2"], "bbox"),
+        (["register", "examples/sedan.jpg", "--out", "x.json"], "--model"),
+    ],
+)
+def test_cli_bad_input_exits_2_with_one_line(args, message):
+    proc = _cli(*args)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0]
+
+
+def test_cli_empty_mesh_and_bad_camera_json(tmp_path):
+    empty = tmp_path / "empty.obj"
+    empty.write_text("v 0 0 0\n")
+    proc = _cli("register", "examples/sedan.jpg", "--model", str(empty), "--out", str(tmp_path / "r.json"))
+    assert proc.returncode == 2 and "no faces" in proc.stderr
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({"K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 1], "width": 10, "height": 10}))
+    proc = _cli("register", "examples/sedan.jpg", "--model", "sedan", "--init-camera", str(cam), "--out", str(tmp_path / "r.json"))
+    assert proc.returncode == 2 and "rotation" in proc.stderr
+
+
+def test_cli_lists_models():
+    proc = _cli("models")
+    assert proc.returncode == 0 and "sedan" in proc.stdout

@@ -1,0 +1,116 @@
+"""The EGL renderer: exact coverage, camera-facing normals, robustness to bad winding."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import mesh_from_trimesh
+
+from vehicle_pose.camera import Camera
+from vehicle_pose.render import Frame
+from vehicle_pose.synth import look_at_camera
+
+K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
+
+
+def _box_camera(azimuth: float, elevation: float) -> Camera:
+    return look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=azimuth, elevation_deg=elevation,
+                          distance=6.0, focal=300.0, width=320, height=240)
+
+
+def _projected_box_mask(box: trimesh.Trimesh, cam: Camera) -> np.ndarray:
+    """Pixels whose centre lies inside the convex hull of the box's projected corners."""
+    import cv2
+
+    uv = cam.project(box.vertices)
+    hull = cv2.convexHull(uv.astype(np.float32))
+    ys, xs = np.mgrid[0 : cam.height, 0 : cam.width]
+    pts = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float32)
+    inside = np.array([cv2.pointPolygonTest(hull, (float(x), float(y)), False) >= 0 for x, y in pts])
+    return inside.reshape(cam.height, cam.width)
+
+
+@pytest.mark.parametrize("azimuth,elevation", [(30, 20), (120, 35), (200, 10), (300, 50)])
+def test_box_coverage_matches_vertex_projection(renderer, azimuth, elevation):
+    box = trimesh.creation.box(extents=(2.0, 1.2, 0.8))
+    cam = _box_camera(azimuth, elevation)
+    frame = renderer.render(mesh_from_trimesh(box), cam)
+    truth = _projected_box_mask(box, cam)
+    cov = frame.coverage
+    iou = (cov & truth).sum() / (cov | truth).sum()
+    assert iou > 0.99
+
+
+def test_normals_face_the_camera_and_are_unit(renderer):
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    cam = _box_camera(45, 20)
+    frame = renderer.render(mesh_from_trimesh(sphere), cam)
+    n = frame.covered(frame.attrs)[:, 1:]
+    assert frame.pixel_count > 1000
+    assert np.all(np.linalg.norm(n, axis=1) == pytest.approx(1.0, abs=1e-3))
+    # In OpenCV camera coordinates the camera looks along +z: visible normals have n_z < 0.
+    assert np.all(n[:, 2] < 0.05)
+    assert np.mean(n[:, 2] < 0) > 0.99
+
+
+def test_flipped_faces_give_the_same_normals(renderer):
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    flipped = sphere.copy()
+    faces = flipped.faces.copy()
+    faces[::2] = faces[::2, ::-1]
+    flipped = trimesh.Trimesh(flipped.vertices, faces, process=False)
+    assert not flipped.is_winding_consistent
+    from vehicle_pose.mesh import Mesh, Part, _shading_geometry
+
+    verts, normals, tris = _shading_geometry(flipped)
+    bad = Mesh((Part("p", "body", verts, normals, tris, np.ones(len(verts), np.float32)),))
+    cam = _box_camera(45, 20)
+    good = renderer.render(mesh_from_trimesh(sphere), cam)
+    got = renderer.render(bad, cam)
+    assert np.array_equal(got.labels > 0, good.labels > 0)
+    dot = (got.covered(got.attrs)[:, 1:] * good.covered(good.attrs)[:, 1:]).sum(1)
+    assert np.median(dot) > 0.99
+
+
+def test_off_screen_and_behind_camera_give_empty_frames(renderer):
+    box = mesh_from_trimesh(trimesh.creation.box(extents=(1, 1, 1)))
+    behind = Camera(K, np.eye(3), np.array([0.0, 0.0, -5.0]), 320, 240)
+    aside = Camera(K, np.eye(3), np.array([50.0, 0.0, 5.0]), 320, 240)
+    for cam in (behind, aside):
+        assert renderer.render(box, cam).pixel_count == 0
+
+
+def test_camera_inside_the_bounding_sphere_clips_instead_of_failing(renderer):
+    box = mesh_from_trimesh(trimesh.creation.box(extents=(4, 4, 4)))
+    cam = Camera(K, np.eye(3), np.array([0.0, 0.0, 1.5]), 320, 240)
+    frame = renderer.render(box, cam)
+    assert frame.pixel_count > 0.9 * 320 * 240
+
+
+def test_frame_indices_address_the_whole_image():
+    labels = np.zeros((3, 4), np.uint8)
+    labels[1, 2] = 1
+    frame = Frame(np.zeros((3, 4, 4), np.float32), labels, 5, 6, 20, 10)
+    assert frame.covered_flat_indices().tolist() == [(6 + 1) * 20 + 5 + 2]
+    assert frame.coverage[7, 7]
+
+
+def test_textured_parts_modulate_albedo(renderer, tmp_path):
+    from PIL import Image
+
+    from vehicle_pose.mesh import load_mesh
+
+    quad = trimesh.Trimesh([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]], [[0, 1, 2], [0, 2, 3]], process=False)
+    tex = np.zeros((8, 8, 3), np.uint8)
+    tex[:, 4:] = 255
+    quad.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1], [0, 1]], image=Image.fromarray(tex))
+    path = tmp_path / "quad.glb"
+    quad.export(path)
+    mesh = load_mesh(path)
+    assert mesh.parts[0].texture is not None
+    cam = look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=0, elevation_deg=0, distance=4.0,
+                         focal=200.0, width=160, height=120)
+    frame = renderer.render(mesh, cam)
+    k = frame.covered(frame.attrs)[:, 0]
+    assert k.max() > 0.3 and k.min() < 0.05 * k.max()

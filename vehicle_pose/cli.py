@@ -1,0 +1,126 @@
+"""The ``vehicle-pose`` command line.
+
+Exit codes: 0 success; 2 bad input (unreadable photo, unknown model, mesh with no faces,
+invalid camera or box, off-screen start pose, bad arguments) with a one-line reason on stderr;
+3 when no OpenGL context can be created on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from . import __version__
+from .camera import Camera
+from .errors import RenderError, VehiclePoseError
+from .library import ModelLibrary, VehicleModel, model_from_mesh
+from .losses import LOSSES
+from .optimize import OPTIMIZERS
+from .overlay import draw_overlay, save_png
+from .photo import load_photo
+from .register import RegistrationOptions, register
+
+__all__ = ["main"]
+
+_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, as for other bad input
+        print(f"{self.prog}: error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="vehicle-pose", description="Register a vehicle's 3D model onto a photo.")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    r = sub.add_parser("register", help="find the model's pose in a photo")
+    r.add_argument("photo", help="photo file (JPEG, PNG, ...)")
+    r.add_argument("--model", required=True, help="model id from the library, or a mesh file path")
+    r.add_argument("--out", required=True, help="where to write result.json")
+    r.add_argument("--overlay", help="where to write the overlay PNG")
+    r.add_argument("--init-camera", help="start camera JSON {K, R, t, width, height}")
+    r.add_argument("--bbox", help="vehicle box X0,Y0,X1,Y1 in pixels (used without --init-camera)")
+    r.add_argument("--up", default="+z", help="mesh up axis, for a mesh path (default +z)")
+    r.add_argument("--forward", default="+x", help="mesh forward axis, for a mesh path (default +x)")
+    r.add_argument("--units", default="m", choices=sorted(_UNITS), help="mesh units, for a mesh path")
+    r.add_argument("--models-dir", help="model library folder (default: this checkout's vehicle_models/)")
+    r.add_argument("--loss", default="invariant", choices=sorted(LOSSES))
+    r.add_argument("--optimizer", default="nelder-mead", choices=sorted(OPTIMIZERS))
+    r.add_argument("--side", default="auto", choices=("auto", "left", "right"), help="visible side")
+    r.add_argument("--color", action="store_true", help="score the three colour channels (n = 3)")
+    r.add_argument("--no-grabcut", action="store_true", help="keep the photo's background")
+    r.add_argument("--single-level", action="store_true", help="no coarse-to-fine pyramid")
+    r.add_argument("--max-evaluations", type=int, default=RegistrationOptions.max_evaluations, help="per level")
+    r.add_argument("--shade", type=float, default=0.0, help="blend the shaded model into the overlay (0..1)")
+
+    m = sub.add_parser("models", help="list the model library")
+    m.add_argument("--models-dir", help="model library folder")
+    return p
+
+
+def _load_model(args: argparse.Namespace) -> VehicleModel:
+    path = Path(args.model)
+    if path.suffix and (path.is_file() or "/" in args.model or "\\" in args.model):
+        return model_from_mesh(path, up=args.up, forward=args.forward, units=args.units, meters_per_unit=_UNITS[args.units])
+    return ModelLibrary(args.models_dir).load(args.model)
+
+
+def _register(args: argparse.Namespace) -> int:
+    photo = load_photo(args.photo)
+    model = _load_model(args)
+    init = Camera.load(args.init_camera) if args.init_camera else None
+    options = RegistrationOptions(
+        loss=args.loss,
+        optimizer=args.optimizer,
+        coarse_to_fine=not args.single_level,
+        grabcut=not args.no_grabcut,
+        color=args.color,
+        max_evaluations=args.max_evaluations,
+        side=args.side,
+    )
+    result = register(photo, model, init_camera=init, bbox=args.bbox, options=options)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    if args.overlay:
+        image = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels, shade=args.shade)
+        save_png(args.overlay, image)
+    print(
+        f"registered {model.info.id}: loss {result.loss:.4f}, {result.evaluations} evaluations, "
+        f"{result.seconds:.2f} s -> {out}"
+    )
+    return 0
+
+
+def _models(args: argparse.Namespace) -> int:
+    lib = ModelLibrary(args.models_dir)
+    for model_id in lib.ids():
+        info = lib.info(model_id)
+        print(f"{info.id}\t{info.name}\t{info.mesh_path.name}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        if args.command == "register":
+            return _register(args)
+        return _models(args)
+    except RenderError as exc:
+        print(f"vehicle-pose: error: {exc}", file=sys.stderr)
+        return 3
+    except (VehiclePoseError, ValueError) as exc:
+        print(f"vehicle-pose: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"vehicle-pose: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,157 @@
+"""Derivative-free minimisers of the registration loss (method.md §5, step 3).
+
+The default is the paper's downhill simplex (Nelder-Mead) restarted at the best point with a
+fresh simplex until a restart no longer improves. Any callable with the :class:`Optimizer`
+signature can replace it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import minimize
+
+__all__ = ["OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "OPTIMIZERS"]
+
+FloatArray = npt.NDArray[np.float64]
+Objective = Callable[[FloatArray], float]
+
+
+@dataclass(frozen=True)
+class OptimizeResult:
+    """Best point, its value, the number of objective evaluations and of restarts."""
+
+    x: FloatArray
+    fun: float
+    evaluations: int
+    restarts: int
+
+
+class Optimizer(Protocol):
+    def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
+        """Minimise ``fun`` from ``x0``; ``steps`` gives the scale of each coordinate."""
+        ...
+
+
+class _Counted:
+    """Counts evaluations and remembers the best point seen."""
+
+    def __init__(self, fun: Objective) -> None:
+        self.fun = fun
+        self.count = 0
+        self.best_x: FloatArray | None = None
+        self.best_f = np.inf
+
+    def __call__(self, x: FloatArray) -> float:
+        self.count += 1
+        f = float(self.fun(x))
+        if f < self.best_f:
+            self.best_f, self.best_x = f, np.array(x, dtype=np.float64)
+        return f
+
+
+@dataclass(frozen=True)
+class NelderMeadRestarts:
+    """Nelder-Mead, restarted at the best point until a restart improves by less than ``min_gain``.
+
+    Parameters
+    ----------
+    max_restarts : int
+        Restarts after the first run.
+    min_gain : float
+        A restart that lowers the loss by less stops the search.
+    xtol : float
+        Simplex size (in units of ``steps``) at which one run stops.
+    ftol : float
+        Spread of loss values in the simplex at which one run stops.
+    patience : int
+        A run also stops when its best value has improved by less than ``ftol`` over this many
+        iterations: pixel quantisation keeps the loss from ever becoming smooth enough for
+        the simplex's own tests.
+    shrink : float
+        Each restart's simplex is this fraction of the previous one's.
+    adaptive : bool
+        Use dimension-dependent simplex coefficients (Gao and Han, 2012).
+    """
+
+    max_restarts: int = 6
+    min_gain: float = 1e-5
+    xtol: float = 0.05
+    ftol: float = 1e-5
+    shrink: float = 0.7
+    adaptive: bool = False
+    patience: int = 16
+
+    def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
+        counted = _Counted(fun)
+        x = np.asarray(x0, dtype=np.float64)
+        s = np.asarray(steps, dtype=np.float64)
+        best = counted(x)
+        restarts = -1
+        scale = 1.0
+        while restarts < self.max_restarts and counted.count < max_evaluations:
+            restarts += 1
+            # Search in coordinates scaled by the steps, so one tolerance suits every parameter.
+            origin = x.copy()
+            dim = len(x)
+            history: list[float] = []
+
+            def stall(intermediate_result: object) -> None:
+                history.append(counted.best_f)
+                if len(history) > max(self.patience, 2 * (dim + 1)) and history[-1 - self.patience] - history[-1] < self.ftol:
+                    raise StopIteration
+
+            minimize(
+                lambda z: counted(origin + z * s),
+                np.zeros(dim),
+                method="Nelder-Mead",
+                callback=stall,
+                options={
+                    "initial_simplex": np.vstack([np.zeros(dim), scale * np.eye(dim)]),
+                    "xatol": self.xtol,
+                    "fatol": self.ftol,
+                    "maxfev": max_evaluations - counted.count,
+                    "adaptive": self.adaptive,
+                },
+            )
+            gain = best - counted.best_f
+            assert counted.best_x is not None
+            x, best = counted.best_x, counted.best_f
+            # The first run is not a restart: only a restart that fails to improve ends the search.
+            if restarts > 0 and gain < self.min_gain:
+                break
+            scale *= self.shrink
+        assert counted.best_x is not None
+        return OptimizeResult(counted.best_x, counted.best_f, counted.count, max(restarts, 0))
+
+
+@dataclass(frozen=True)
+class Powell:
+    """SciPy's Powell line-search method, for comparison."""
+
+    xtol: float = 0.05
+    ftol: float = 1e-5
+
+    def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
+        counted = _Counted(fun)
+        s = np.asarray(steps, dtype=np.float64)
+        x0 = np.asarray(x0, dtype=np.float64)
+        counted(x0)
+        minimize(
+            lambda z: counted(x0 + z * s),
+            np.zeros_like(x0),
+            method="Powell",
+            options={"xtol": self.xtol, "ftol": self.ftol, "maxfev": max_evaluations, "direc": np.eye(len(x0))},
+        )
+        assert counted.best_x is not None
+        return OptimizeResult(counted.best_x, counted.best_f, counted.count, 0)
+
+
+OPTIMIZERS: dict[str, Callable[[], Optimizer]] = {
+    "nelder-mead": NelderMeadRestarts,
+    "powell": Powell,
+}

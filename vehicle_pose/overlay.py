@@ -1,0 +1,73 @@
+"""Overlay images: the registered model's outline (and optionally its shading) on the photo."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from .camera import Camera
+from .mesh import Mesh
+from .metadata import WheelGeometry
+from .render import Renderer
+
+__all__ = ["draw_overlay", "save_png"]
+
+_OUTLINE = (255, 220, 0)
+_PARTS = (0, 200, 255)
+_WHEELS = (255, 60, 60)
+
+
+def draw_overlay(
+    photo: npt.NDArray[np.uint8],
+    mesh: Mesh,
+    camera: Camera,
+    *,
+    renderer: Renderer | None = None,
+    wheels: WheelGeometry | None = None,
+    shade: float = 0.0,
+    thickness: int | None = None,
+) -> npt.NDArray[np.uint8]:
+    """The photo (H, W, 3) uint8 RGB with the model's outline drawn at ``camera``.
+
+    The silhouette is drawn in yellow, boundaries between material parts in cyan and the wheel
+    centres in red. ``shade`` in [0, 1] blends a head-light shaded render of the model in.
+    """
+    r = renderer if renderer is not None else Renderer()
+    H, W = photo.shape[:2]
+    cam = camera if (camera.width, camera.height) == (W, H) else camera.scaled(W, H)
+    frame = r.render(mesh, cam)
+    out = photo.copy()
+    t = thickness if thickness is not None else max(1, round(max(W, H) / 500))
+    if frame.pixel_count == 0:
+        return out
+    labels = frame.full(frame.labels)
+    if shade > 0.0:
+        attrs = frame.full(frame.attrs)
+        gray = np.clip(0.3 * attrs[..., 0] + 0.7 * np.abs(attrs[..., 3]), 0.0, 1.0) * 255.0
+        cov = labels > 0
+        out[cov] = ((1.0 - shade) * out[cov] + shade * gray[cov, None]).astype(np.uint8)
+    edges = np.zeros((H, W), np.uint8)
+    edges[:, 1:] |= labels[:, 1:] != labels[:, :-1]
+    edges[1:, :] |= labels[1:, :] != labels[:-1, :]
+    edges &= (labels > 0) | np.roll(labels > 0, 1, axis=0) | np.roll(labels > 0, 1, axis=1)
+    if t > 1:
+        edges = cv2.dilate(edges, np.ones((t, t), np.uint8))
+    out[edges > 0] = _PARTS
+    contours, _ = cv2.findContours((labels > 0).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, _OUTLINE, t + 1, lineType=cv2.LINE_AA)
+    if wheels is not None:
+        uv = cam.project(wheels.wheel_centres())
+        for x, y in uv[np.all(np.isfinite(uv), axis=1)]:
+            cv2.circle(out, (int(round(x)), int(round(y))), 2 * t + 2, _WHEELS, -1, lineType=cv2.LINE_AA)
+    return out
+
+
+def save_png(path: str | Path, rgb: npt.NDArray[np.uint8]) -> None:
+    """Write an RGB array as PNG (creating the folder)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(p), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"cannot write {p}")

@@ -1,0 +1,67 @@
+"""Reading photos into RGB arrays: EXIF orientation applied, any mode converted, bombs refused."""
+
+from __future__ import annotations
+
+import io
+import warnings
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from .errors import PhotoError
+
+__all__ = ["load_photo", "decode_photo", "is_gray", "MAX_PIXELS"]
+
+MAX_PIXELS = 50_000_000
+
+
+def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
+    """Decode image bytes to an (H, W, 3) uint8 RGB array.
+
+    EXIF orientation is applied; CMYK, 16-bit, palette, gray and alpha images are converted
+    (alpha is composited over mid-gray). Raises PhotoError for anything that is not a complete
+    image, or one with more than ``max_pixels`` pixels.
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img = Image.open(io.BytesIO(data))
+            if img.width * img.height > max_pixels:
+                raise PhotoError(f"photo has {img.width}x{img.height} pixels, more than {max_pixels}")
+            img.load()
+    except PhotoError:
+        raise
+    except (UnidentifiedImageError, Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+        raise PhotoError(f"not a readable image: {exc}") from None
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise PhotoError(f"image data is damaged or truncated: {exc}") from None
+    img = ImageOps.exif_transpose(img)
+    if img.mode in ("I;16", "I;16B", "I;16L", "I"):
+        arr = np.asarray(img, dtype=np.float64)
+        top = max(float(arr.max()), 1.0)
+        img = Image.fromarray(np.clip(arr / top * 255.0, 0, 255).astype(np.uint8), "L")
+    if img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info):
+        rgba = img.convert("RGBA")
+        base = Image.new("RGBA", rgba.size, (128, 128, 128, 255))
+        img = Image.alpha_composite(base, rgba)
+    rgb = np.asarray(img.convert("RGB"), dtype=np.uint8)
+    if rgb.ndim != 3 or rgb.shape[0] < 8 or rgb.shape[1] < 8:
+        raise PhotoError(f"photo of size {rgb.shape[1]}x{rgb.shape[0]} is too small")
+    return np.ascontiguousarray(rgb)
+
+
+def load_photo(path: str | Path, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
+    """Read a photo file into an (H, W, 3) uint8 RGB array; PhotoError if it cannot be used."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise PhotoError(f"cannot read photo {p}: {exc.strerror}") from None
+    return decode_photo(data, max_pixels=max_pixels)
+
+
+def is_gray(rgb: npt.NDArray[np.uint8]) -> bool:
+    """True when all three channels are equal (a gray photo stored as RGB)."""
+    return bool(np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]))
