@@ -54,15 +54,22 @@ def _complete(info: ModelInfo, mesh: Mesh) -> ModelInfo:
 
 
 def model_from_mesh(
-    path: str | Path, *, up: str = "+z", forward: str = "+x", units: str = "m", meters_per_unit: float = 1.0
+    path: str | Path,
+    *,
+    up: str = "+z",
+    forward: str = "+x",
+    units: str = "m",
+    meters_per_unit: float = 1.0,
+    texture_dirs: tuple[str | Path, ...] = (),
 ) -> VehicleModel:
     """A model straight from a mesh file; its wheel metadata is estimated."""
     p = Path(path).resolve()
     parse_axis(up), parse_axis(forward)
     if abs(parse_axis(up) @ parse_axis(forward)) > 0.5:
         raise ModelError(f"up {up} and forward {forward} must be different axes")
-    info = ModelInfo(p.stem, p.stem, p, units, meters_per_unit, up, forward, None)
-    mesh = load_mesh(p)
+    dirs = tuple(Path(d) for d in texture_dirs)
+    info = ModelInfo(p.stem, p.stem, p, units, meters_per_unit, up, forward, None, texture_dirs=dirs)
+    mesh = load_mesh(p, texture_dirs=dirs)
     return VehicleModel(_complete(info, mesh), mesh)
 
 

@@ -1,0 +1,135 @@
+"""Registration accuracy and time: synthetic start-error sweep, loss comparison, photoreal cases.
+
+Usage: .venv/bin/python bench/accuracy.py [--part sweep|losses|photoreal|all] [--cases N]
+       [--shared ../shared/bench]
+Success = mean vertex projection error <= 5 px at 640 px width. Prints tables and writes
+bench/results/accuracy_<part>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from common import perturbed, projection_error, table, write_report
+
+from vehicle_pose.camera import Camera
+from vehicle_pose.library import ModelLibrary, model_from_mesh
+from vehicle_pose.photo import load_photo
+from vehicle_pose.register import RegistrationOptions, register
+from vehicle_pose.render import Renderer
+from vehicle_pose.synth import LIGHTINGS, look_at_camera, synthesize
+
+SUCCESS_PX = 5.0
+
+
+def summarise(label: dict, runs: list[dict]) -> dict:
+    errs = np.array([r["error_px"] for r in runs])
+    secs = np.array([r["seconds"] for r in runs])
+    return {
+        **label,
+        "cases": len(runs),
+        "success %": 100.0 * float(np.mean(errs <= SUCCESS_PX)),
+        "median err px": float(np.median(errs)),
+        "median s": float(np.median(secs)),
+        "median evals": float(np.median([r["evaluations"] for r in runs])),
+    }
+
+
+def synthetic_cases(n: int, seed: int = 0):
+    model = ModelLibrary().load("sedan")
+    renderer = Renderer()
+    rng = np.random.default_rng(seed)
+    centre, _ = model.mesh.sphere
+    lights = list(LIGHTINGS.values())
+    for i in range(n):
+        truth = look_at_camera(centre, [1, 0, 0], [0, 0, 1], azimuth_deg=rng.uniform(0, 360),
+                               elevation_deg=rng.uniform(5, 30), distance=rng.uniform(7, 12),
+                               focal=rng.uniform(600, 1500), width=640, height=480)
+        photo, _ = synthesize(model.mesh, truth, lighting=lights[i % len(lights)], renderer=renderer, seed=i)
+        yield model, renderer, truth, photo, rng
+
+
+def run_one(model, renderer, photo, truth, start, options, **kw) -> dict:
+    pts = model.mesh.vertices
+    res = register(photo, model, init_camera=start, options=options, renderer=renderer, **kw)
+    return {"error_px": projection_error(pts, res.camera, truth), "start_error_px": projection_error(pts, start, truth),
+            "seconds": res.seconds, "evaluations": res.evaluations, "loss": res.loss}
+
+
+def sweep(n: int) -> dict:
+    rows, runs = [], {}
+    cases = list(synthetic_cases(n))
+    for degrees in (5.0, 10.0, 20.0, 30.0):
+        out = []
+        for model, renderer, truth, photo, rng in cases:
+            start = perturbed(truth, rng, degrees)
+            out.append(run_one(model, renderer, photo, truth, start, RegistrationOptions()))
+        runs[str(degrees)] = out
+        rows.append(summarise({"start rotation deg": degrees,
+                               "median start err px": float(np.median([r["start_error_px"] for r in out]))}, out))
+        print(table(rows, list(rows[0])), flush=True)
+    return {"rows": rows, "runs": runs}
+
+
+def losses(n: int) -> dict:
+    rows, runs = [], {}
+    cases = [(m, r, t, p, perturbed(t, rng, 10.0)) for m, r, t, p, rng in synthetic_cases(n, seed=1)]
+    for loss in ("invariant", "invariant-gray", "invariant-parts", "correlation", "squared", "silhouette-iou", "mutual-information"):
+        for color in ((False, True) if loss == "invariant" else (False,)):
+            opts = RegistrationOptions(loss=loss, color=color)
+            out = [run_one(m, r, p, t, s, opts) for m, r, t, p, s in cases]
+            runs[f"{loss}{'-color' if color else ''}"] = out
+            rows.append(summarise({"loss": loss + (" (n=3)" if color else "")}, out))
+            print(table(rows, list(rows[0])), flush=True)
+    return {"rows": rows, "runs": runs}
+
+
+def photoreal(shared: Path, start_name: str) -> dict:
+    catalogue = {m["id"]: m for m in json.loads((shared / "models.json").read_text())}
+    models, renderer, out = {}, Renderer(), []
+    for case in sorted((shared / "cases").iterdir()):
+        gt = json.loads((case / "gt.json").read_text())
+        entry = catalogue[gt["model"]]
+        if entry["id"] not in models:
+            texture = [shared / entry["texture_dir"]] if entry.get("texture_dir") else []
+            models[entry["id"]] = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"],
+                                                  units="m", meters_per_unit=entry["meters_per_unit"], texture_dirs=tuple(texture))
+        model = models[entry["id"]]
+        truth = Camera.from_dict(gt)
+        start = Camera.from_dict(json.loads((case / start_name).read_text()))
+        r = run_one(model, renderer, load_photo(case / "photo.jpg"), truth, start, RegistrationOptions())
+        r["case"] = case.name
+        r["model"] = entry["id"]
+        out.append(r)
+        print(f"{case.name} {entry['id']:18s} start {r['start_error_px']:7.1f} px -> {r['error_px']:7.2f} px "
+              f"loss {r['loss']:.4f} {r['evaluations']} evals {r['seconds']:.2f} s", flush=True)
+    rows = [summarise({"start": start_name, "model": mid}, [r for r in out if r["model"] == mid]) for mid in models]
+    rows.append(summarise({"start": start_name, "model": "all"}, out))
+    print(table(rows, list(rows[0])))
+    return {"rows": rows, "runs": out}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--part", default="all", choices=("sweep", "losses", "photoreal", "all"))
+    ap.add_argument("--cases", type=int, default=8)
+    ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "bench")
+    ap.add_argument("--start", default="init.json", help="start file of the photoreal cases (init.json, init_hard.json)")
+    args = ap.parse_args()
+    if args.part in ("sweep", "all"):
+        print(write_report("accuracy_sweep", sweep(args.cases)))
+    if args.part in ("losses", "all"):
+        print(write_report("accuracy_losses", losses(args.cases)))
+    if args.part in ("photoreal", "all"):
+        if (args.shared / "cases").is_dir():
+            name = "accuracy_photoreal" + ("_hard" if "hard" in args.start else "")
+            print(write_report(name, photoreal(args.shared, args.start)))
+        else:
+            print(f"no photoreal cases at {args.shared}; skipped")
+
+
+if __name__ == "__main__":
+    main()

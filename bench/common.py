@@ -1,0 +1,71 @@
+"""Helpers shared by the benchmark scripts: tables, JSON reports, error metrics, start poses."""
+
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from vehicle_pose.camera import Camera
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def table(rows: list[dict], columns: list[str]) -> str:
+    """A plain-text table of ``rows`` with ``columns`` (floats to 3 significant digits)."""
+
+    def fmt(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
+        return str(v)
+
+    cells = [[fmt(r.get(c, "")) for c in columns] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
+    lines = [" | ".join(c.ljust(w) for c, w in zip(columns, widths)), "-+-".join("-" * w for w in widths)]
+    lines += [" | ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
+    return "\n".join(lines)
+
+
+def write_report(name: str, data: dict) -> Path:
+    """Write ``bench/results/<name>.json`` with machine details and return its path."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    except OSError:
+        commit = ""
+    data = {
+        "benchmark": name,
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "commit": commit,
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "python": platform.python_version()},
+        **data,
+    }
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(data, indent=2) + "\n")
+    return path
+
+
+def projection_error(points: np.ndarray, est: Camera, truth: Camera) -> float:
+    """Mean vertex projection distance in pixels, scaled to a 640-pixel-wide image."""
+    d = np.linalg.norm(est.project(points) - truth.project(points), axis=1)
+    return float(np.nanmean(d) * 640.0 / truth.width)
+
+
+def perturbed(truth: Camera, rng: np.random.Generator, degrees: float) -> Camera:
+    """A start camera rotated by ``degrees`` about a random axis through the camera, moved by
+    degrees/300 of the distance and with the focal length off by up to degrees/100."""
+    axis = rng.normal(size=3)
+    rot = Rotation.from_rotvec(np.radians(degrees) * axis / np.linalg.norm(axis)).as_matrix()
+    centre_depth = np.linalg.norm(truth.t)
+    t = rot @ truth.t + (degrees / 300.0) * centre_depth * rng.normal(size=3) / np.sqrt(3)
+    t = t + (truth.t - rot @ truth.t)
+    K = truth.K.copy()
+    k = 1.0 + rng.uniform(-1, 1) * degrees / 100.0
+    K[0, 0] *= k
+    K[1, 1] *= k
+    return Camera(K, rot @ truth.R, t, truth.width, truth.height)

@@ -1,0 +1,80 @@
+"""Per-evaluation cost (render + loss) against image size and mesh size.
+
+Usage: .venv/bin/python bench/speed.py [--repeats N]
+Prints a table and writes bench/results/speed.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import numpy as np
+from common import table, write_report
+
+from vehicle_pose.library import VehicleModel
+from vehicle_pose.losses import make_loss
+from vehicle_pose.mesh import load_mesh
+from vehicle_pose.metadata import ModelInfo
+from vehicle_pose.procedural import SEDAN, build_car
+from vehicle_pose.register import RegistrationOptions, _face_budget, make_target
+from vehicle_pose.render import Renderer
+from vehicle_pose.synth import look_at_camera, synthesize
+
+
+def dense_sedan(target_faces: int, tmp: str) -> VehicleModel:
+    """The procedural sedan with its body loft refined to about ``target_faces`` faces."""
+    ring = int(np.sqrt(target_faces / 2 / 1.5))
+    spec = dataclasses.replace(SEDAN, stations=int(1.5 * ring), ring=ring)
+    scene, wheels = build_car(spec)
+    path = f"{tmp}/sedan_{target_faces}.glb"
+    scene.export(path)
+    mesh = load_mesh(path)
+    info = ModelInfo(f"sedan-{target_faces}", "dense sedan", mesh.source, "m", 1.0, "+z", "+x", wheels)
+    return VehicleModel(info, mesh)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--repeats", type=int, default=30)
+    args = ap.parse_args()
+    import tempfile
+
+    renderer = Renderer()
+    rows = []
+    options = RegistrationOptions()
+    with tempfile.TemporaryDirectory() as tmp:
+        for target in (10_000, 100_000, 1_000_000):
+            model = dense_sedan(target, tmp)
+            centre, _ = model.mesh.sphere
+            for W, H in ((320, 240), (640, 480)):
+                cam = look_at_camera(centre, [1, 0, 0], [0, 0, 1], azimuth_deg=130, elevation_deg=15,
+                                     distance=9.0, focal=900.0 * W / 640, width=W, height=H)
+                photo, mask = synthesize(model.mesh, cam, renderer=renderer)
+                loss = make_loss("invariant", make_target(photo, mask, color=False))
+                lod = model.lod(_face_budget(float(mask.sum()), options))
+                for label, mesh in (("full mesh", model.mesh), ("pipeline LOD", lod)):
+                    loss(renderer.render(mesh, cam))
+                    t0 = time.perf_counter()
+                    for _ in range(args.repeats):
+                        frame = renderer.render(mesh, cam)
+                    t_render = (time.perf_counter() - t0) / args.repeats
+                    t0 = time.perf_counter()
+                    for _ in range(args.repeats):
+                        loss(renderer.render(mesh, cam))
+                    t_total = (time.perf_counter() - t0) / args.repeats
+                    rows.append({
+                        "faces": model.mesh.n_faces, "image": f"{W}x{H}", "mesh": label, "rendered faces": mesh.n_faces,
+                        "silhouette px": frame.pixel_count, "render ms": 1e3 * t_render,
+                        "loss ms": 1e3 * (t_total - t_render), "total ms": 1e3 * t_total,
+                    })
+                    print(table(rows[-1:], list(rows[-1])).splitlines()[-1], flush=True)
+    cols = ["faces", "image", "mesh", "rendered faces", "silhouette px", "render ms", "loss ms", "total ms"]
+    print(table(rows, cols))
+    gl = renderer.ctx.info
+    print(write_report("speed", {"renderer": gl["GL_RENDERER"], "rows": rows}))
+
+
+if __name__ == "__main__":
+    main()
