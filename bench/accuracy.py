@@ -9,6 +9,7 @@ bench/results/accuracy_<part>.json.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -87,7 +88,7 @@ def losses(n: int) -> dict:
     return {"rows": rows, "runs": runs}
 
 
-def photoreal(shared: Path, start_name: str) -> dict:
+def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracle: bool = False) -> dict:
     catalogue = {m["id"]: m for m in json.loads((shared / "models.json").read_text())}
     models, renderer, out = {}, Renderer(), []
     for case in sorted((shared / "cases").iterdir()):
@@ -100,7 +101,8 @@ def photoreal(shared: Path, start_name: str) -> dict:
         model = models[entry["id"]]
         truth = Camera.from_dict(gt)
         start = Camera.from_dict(json.loads((case / start_name).read_text()))
-        r = run_one(model, renderer, load_photo(case / "photo.jpg"), truth, start, RegistrationOptions())
+        mask = np.load(case / "mask.npy") if oracle else None
+        r = run_one(model, renderer, load_photo(case / "photo.jpg"), truth, start, options, foreground=mask)
         r["case"] = case.name
         r["model"] = entry["id"]
         out.append(r)
@@ -112,12 +114,29 @@ def photoreal(shared: Path, start_name: str) -> dict:
     return {"rows": rows, "runs": out}
 
 
+def parse_options(pairs: list[str]) -> RegistrationOptions:
+    """RegistrationOptions from KEY=VALUE strings, each value typed like the field's default."""
+    defaults = RegistrationOptions()
+    fields = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        if not hasattr(defaults, key):
+            raise SystemExit(f"unknown option {key!r}")
+        kind = type(getattr(defaults, key))
+        fields[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+    return dataclasses.replace(defaults, **fields)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--part", default="all", choices=("sweep", "losses", "photoreal", "all"))
     ap.add_argument("--cases", type=int, default=8)
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "bench")
     ap.add_argument("--start", default="init.json", help="start file of the photoreal cases (init.json, init_hard.json)")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a RegistrationOptions field for the photoreal part, e.g. parametrization=view (repeatable)")
+    ap.add_argument("--oracle-mask", action="store_true", help="photoreal: give the true mask instead of GrabCut (a ceiling)")
+    ap.add_argument("--tag", default="", help="suffix of the photoreal report's name")
     args = ap.parse_args()
     if args.part in ("sweep", "all"):
         print(write_report("accuracy_sweep", sweep(args.cases)))
@@ -125,8 +144,12 @@ def main() -> None:
         print(write_report("accuracy_losses", losses(args.cases)))
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
-            name = "accuracy_photoreal" + ("_hard" if "hard" in args.start else "")
-            print(write_report(name, photoreal(args.shared, args.start)))
+            name = "accuracy_photoreal" + ("_hard" if "hard" in args.start else "") + (f"_{args.tag}" if args.tag else "")
+            options = parse_options(args.option)
+            data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask)
+            data["options"] = vars(options)
+            data["oracle_mask"] = args.oracle_mask
+            print(write_report(name, data))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")
 

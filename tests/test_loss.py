@@ -118,3 +118,10 @@ def test_bound_loss_matches_direct_formula():
 def test_off_screen_model_scores_the_maximum():
     target = PhotoTarget(np.random.default_rng(0).random((20, 20, 1)), np.ones((20, 20)), np.ones((20, 20), bool))
     assert InvariantLoss(target)(Frame.empty(20, 20)) == 1.0
+
+
+def test_non_finite_attributes_score_the_maximum():
+    rng = np.random.default_rng(2)
+    g = rng.normal(size=(50, 4))
+    g[3, 1] = np.nan
+    assert invariant_loss(rng.normal(size=50), g) == 1.0

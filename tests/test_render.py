@@ -114,3 +114,15 @@ def test_textured_parts_modulate_albedo(renderer, tmp_path):
     frame = renderer.render(mesh, cam)
     k = frame.covered(frame.attrs)[:, 0]
     assert k.max() > 0.3 and k.min() < 0.05 * k.max()
+
+
+def test_degenerate_triangles_give_finite_attributes(renderer):
+    verts = np.array([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1], [0, 0, 0], [0, 0, 0]], np.float64)
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 5]], np.uint32)
+    from vehicle_pose.mesh import Mesh, Part
+
+    mesh = Mesh((Part("p", "body", verts, np.zeros((6, 3), np.float32), faces, np.ones(6, np.float32)),))
+    cam = look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=0, elevation_deg=0, distance=4.0,
+                         focal=200.0, width=160, height=120)
+    frame = renderer.render(mesh, cam)
+    assert frame.pixel_count > 100 and np.all(np.isfinite(frame.attrs))

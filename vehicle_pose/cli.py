@@ -19,6 +19,7 @@ from .library import ModelLibrary, VehicleModel, model_from_mesh
 from .losses import LOSSES
 from .optimize import OPTIMIZERS
 from .overlay import draw_overlay, save_png
+from .parametrize import PARAMETRIZATIONS
 from .photo import load_photo
 from .register import RegistrationOptions, register
 
@@ -51,6 +52,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--models-dir", help="model library folder (default: this checkout's vehicle_models/)")
     r.add_argument("--loss", default="invariant", choices=sorted(LOSSES))
     r.add_argument("--optimizer", default="nelder-mead", choices=sorted(OPTIMIZERS))
+    r.add_argument("--parametrization", default="theta", choices=PARAMETRIZATIONS,
+                   help="search coordinates: the paper's theta, or a view perturbation (see docs/engine.md)")
+    r.add_argument("--resegment", action="store_true", help="re-run GrabCut after each coarse level")
     r.add_argument("--side", default="auto", choices=("auto", "left", "right"), help="visible side")
     r.add_argument("--color", action="store_true", help="score the three colour channels (n = 3)")
     r.add_argument("--no-grabcut", action="store_true", help="keep the photo's background")
@@ -82,6 +86,8 @@ def _register(args: argparse.Namespace) -> int:
         color=args.color,
         max_evaluations=args.max_evaluations,
         side=args.side,
+        parametrization=args.parametrization,
+        resegment=args.resegment,
     )
     result = register(photo, model, init_camera=init, bbox=args.bbox, options=options)
     out = Path(args.out)

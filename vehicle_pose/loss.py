@@ -113,6 +113,8 @@ def loss_from_moments(
     c_ff = s_ff / sw - np.outer(mean_f, mean_f)
     c_mm = s_mm / sw - np.outer(mean_m, mean_m)
     c_fm = s_fm / sw - np.outer(mean_f, mean_m)
+    if not (np.all(np.isfinite(c_mm)) and np.all(np.isfinite(c_fm)) and np.all(np.isfinite(c_ff))):
+        return worst
     w_f = _inv_sqrt(c_ff)
     w_m = _inv_sqrt(c_mm)
     if w_f.shape[1] == 0 or w_m.shape[1] == 0:

@@ -16,14 +16,15 @@ import numpy as np
 import numpy.typing as npt
 
 from .camera import Camera
-from .errors import PoseError
+from .errors import CameraError, PoseError
 from .initialize import central_box, parse_bbox, start_from_box
 from .library import VehicleModel
 from .loss import PhotoTarget
 from .losses import LOSSES, make_loss
 from .optimize import OPTIMIZERS, Optimizer
 from .photo import is_gray
-from .pose import Side, Theta, camera_to_theta, theta_to_camera, visible_side
+from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
+from .pose import Side, Theta, camera_to_theta, visible_side
 from .render import Renderer
 from .segment import grabcut_foreground
 
@@ -31,10 +32,6 @@ __all__ = ["RegistrationOptions", "LevelReport", "RegistrationResult", "register
 
 Progress = Callable[[str, int, float], None]
 _INVALID = 10.0
-# Initial simplex steps in normalised units (mu/W, mu/H, delta/W, delta/H, psi_x, psi_y) at the
-# coarsest level; the focal parameter 10 W / f gets a step relative to its value.
-_STEPS = np.array([0.03, 0.03, 0.03, 0.03, 0.08, 0.08])
-_F_STEP = 0.25
 
 
 @dataclass(frozen=True)
@@ -64,6 +61,10 @@ class RegistrationOptions:
         Remove the background with GrabCut seeded by the start pose.
     grabcut_margin : float
         GrabCut seed margin, fraction of the start silhouette's diagonal.
+    resegment : bool
+        Run GrabCut again after each coarse level, seeded by that level's pose with
+        ``resegment_margin``: a better pose seeds a better mask.
+    resegment_margin : float
     color : bool
         Score colour photos with n = 3 channels; by default the photo's luminance is scored
         (n = 1, the paper's setting), which measured more accurate (docs/benchmarks.md).
@@ -71,6 +72,9 @@ class RegistrationOptions:
         Loss evaluations allowed per level.
     side : str
         ``"auto"`` (from the start pose), ``"left"`` or ``"right"``: the visible side.
+    parametrization : str
+        Search coordinates: ``"theta"`` (the paper's) or ``"view"`` (see
+        :mod:`vehicle_pose.parametrize`).
     """
 
     loss: str = "invariant"
@@ -82,9 +86,12 @@ class RegistrationOptions:
     min_faces: int = 16384
     grabcut: bool = True
     grabcut_margin: float = 0.06
+    resegment: bool = False
+    resegment_margin: float = 0.04
     color: bool = False
     max_evaluations: int = 400
     side: str = "auto"
+    parametrization: str = "theta"
 
 
 @dataclass(frozen=True)
@@ -198,6 +205,7 @@ def register(
     renderer: Renderer | None = None,
     optimizer: Optimizer | None = None,
     progress: Progress | None = None,
+    foreground: npt.NDArray[np.bool_] | None = None,
 ) -> RegistrationResult:
     """Find the camera that makes the model coincide with the vehicle in the photo.
 
@@ -216,6 +224,8 @@ def register(
     optimizer : Optimizer, optional, keyword-only
         Overrides ``options.optimizer``.
     progress : callable(stage, evaluations, loss), optional, keyword-only
+    foreground : (H, W) bool, optional, keyword-only
+        The vehicle's pixels, when the caller knows them; replaces GrabCut.
 
     Raises
     ------
@@ -226,6 +236,7 @@ def register(
     """
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
+    given_mask = foreground is not None
     if photo.ndim != 3 or photo.shape[2] != 3 or photo.dtype != np.uint8:
         raise ValueError("photo must be an (H, W, 3) uint8 RGB array")
     H0, W0 = photo.shape[:2]
@@ -234,6 +245,8 @@ def register(
         if options.optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {options.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
         optimizer = OPTIMIZERS[options.optimizer]()
+    if options.parametrization not in PARAMETRIZATIONS:
+        raise ValueError(f"unknown parametrization {options.parametrization!r}; choose one of {', '.join(PARAMETRIZATIONS)}")
     if options.loss not in LOSSES:
         raise ValueError(f"unknown loss {options.loss!r}; choose one of {', '.join(LOSSES)}")
 
@@ -267,11 +280,15 @@ def register(
         raise PoseError("the start pose puts the model off-screen or behind the camera")
 
     t = time.perf_counter()
-    foreground = (
-        grabcut_foreground(work, silhouette, margin=options.grabcut_margin)
-        if options.grabcut
-        else np.ones((Hf, Wf), bool)
-    )
+    if foreground is not None:
+        if foreground.shape != (H0, W0):
+            raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
+        foreground = _resize_mask(foreground.astype(bool), Wf, Hf)
+    elif options.grabcut:
+        foreground = grabcut_foreground(work, silhouette, margin=options.grabcut_margin)
+    else:
+        foreground = np.ones((Hf, Wf), bool)
+    segment_again = options.grabcut and options.resegment and not given_mask
     timings["grabcut"] = time.perf_counter() - t
 
     camera = start
@@ -282,20 +299,23 @@ def register(
         mesh = model.lod(_face_budget(float(silhouette.sum()) * (w * h) / (Wf * Hf), options))
         target = make_target(_resize(work, w, h), _resize_mask(foreground, w, h), color=options.color)
         loss_fn = make_loss(options.loss, target)
-        cam_l = camera.scaled(w, h)
+        params: Parametrization
+        if options.parametrization == "view":
+            params = ViewParams(camera.scaled(w, h), model.mesh.sphere[0])
+        else:
+            params = ThetaParams(camera.scaled(w, h), geometry, side)
         try:
-            x0 = camera_to_theta(cam_l, geometry, side).normalized(w, h)
+            x0 = params.start()
         except PoseError:
             raise PoseError(f"the start pose does not show the {side} side's wheels") from None
-        scale = 0.4**li
-        steps = np.append(_STEPS * scale, _F_STEP * scale * max(x0[6], 0.5))
+        steps = params.steps() * 0.4**li
         stage = f"level {li + 1}/{len(sizes)} ({w}x{h})"
         counter = [0]
 
         def objective(x: npt.NDArray[np.float64]) -> float:
             try:
-                cam = theta_to_camera(Theta.from_normalized(x, w, h, side), geometry, w, h)
-            except PoseError:
+                cam = params.camera(x)
+            except (PoseError, CameraError):
                 return _INVALID
             value = float(loss_fn(renderer.render(mesh, cam)))
             counter[0] += 1
@@ -304,14 +324,20 @@ def register(
             return value
 
         res = optimizer(objective, x0, steps, max_evaluations=options.max_evaluations)
-        best = theta_to_camera(Theta.from_normalized(res.x, w, h, side), geometry, w, h)
-        camera = best.scaled(Wf, Hf)
+        camera = params.camera(res.x).scaled(Wf, Hf)
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, res.fun, time.perf_counter() - t))
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
+        if segment_again and li < len(sizes) - 1:
+            t = time.perf_counter()
+            current = renderer.render(model.lod(options.min_faces), camera).coverage
+            if current.sum() >= 16:
+                foreground = grabcut_foreground(work, current, margin=options.resegment_margin)
+            timings["grabcut"] += time.perf_counter() - t
 
     final = camera.scaled(W0, H0)
-    theta = camera_to_theta(final, geometry, side)
+    side = visible_side(final, model.wheels.side("left"))
+    theta = camera_to_theta(final, model.wheels.side(side), side)
     seconds = time.perf_counter() - t_start
     timings["optimize"] = sum(level.seconds for level in levels)
     return RegistrationResult(

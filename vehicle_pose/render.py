@@ -63,10 +63,14 @@ flat in float v_label;
 layout(location = 0) out vec4 out_attr;
 layout(location = 1) out float out_label;
 void main() {
+    // Degenerate (zero-area or zero-normal) geometry must not produce NaN: fall back to the
+    // geometric normal, then to facing the camera.
     vec3 ng = cross(dFdx(v_pos), dFdy(v_pos));
+    float lg = length(ng);
+    ng = lg > 1e-20 ? ng / lg : vec3(0.0, 0.0, -1.0);
     if (dot(ng, v_pos) > 0.0) ng = -ng;
     float len = length(v_normal);
-    vec3 n = len > 1e-12 ? v_normal / len : normalize(ng);
+    vec3 n = len > 1e-12 ? v_normal / len : ng;
     if (dot(n, ng) < 0.0) n = -n;
     float k = v_albedo;
     if (use_tex) k *= dot(texture(tex, v_uv).rgb, vec3(0.299, 0.587, 0.114));

@@ -1,0 +1,95 @@
+"""Search coordinates for the optimiser: the paper's theta, or a local view parametrisation.
+
+``theta`` (default, method.md §3): ``(mu_x/W, mu_y/H, delta_x/W, delta_y/H, psi_x, psi_y, 10W/f)``
+for one visible side. It degenerates for nearly frontal or rear views, where the two wheels of a
+side overlap in the image (delta -> 0) and psi nears the edge of its domain.
+
+``view``: a perturbation of a reference camera about the model's centre: rotation vector (3,
+radians), image position of the centre (2, fractions of W and H), log apparent scale and log
+focal length (the depth follows f, so changing f alone changes only the perspective). It is
+regular for every view.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from .camera import Camera
+from .pose import Side, SideGeometry, Theta, camera_to_theta, theta_to_camera
+
+__all__ = ["Parametrization", "ThetaParams", "ViewParams", "PARAMETRIZATIONS"]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class Parametrization(Protocol):
+    def start(self) -> FloatArray:
+        """Coordinates (7,) of the reference camera."""
+        ...
+
+    def steps(self) -> FloatArray:
+        """Initial simplex steps (7,) of the coarsest level."""
+        ...
+
+    def camera(self, x: FloatArray) -> Camera:
+        """The camera of coordinates x; PoseError when x is out of the domain."""
+        ...
+
+
+@dataclass(frozen=True)
+class ThetaParams:
+    """The paper's normalised theta for one side, at one image size."""
+
+    reference: Camera
+    geometry: SideGeometry
+    side: Side
+
+    def start(self) -> FloatArray:
+        c = self.reference
+        return camera_to_theta(c, self.geometry, self.side).normalized(c.width, c.height)
+
+    def steps(self) -> FloatArray:
+        x6 = self.start()[6]
+        return np.array([0.03, 0.03, 0.03, 0.03, 0.08, 0.08, 0.25 * max(x6, 0.5)])
+
+    def camera(self, x: FloatArray) -> Camera:
+        w, h = self.reference.width, self.reference.height
+        return theta_to_camera(Theta.from_normalized(x, w, h, self.side), self.geometry, w, h)
+
+
+@dataclass(frozen=True)
+class ViewParams:
+    """Rotation vector, centre position, log scale and log focal length about a reference."""
+
+    reference: Camera
+    centre: FloatArray
+
+    def start(self) -> FloatArray:
+        return np.zeros(7)
+
+    def steps(self) -> FloatArray:
+        return np.array([0.08, 0.08, 0.08, 0.03, 0.03, 0.05, 0.3])
+
+    def camera(self, x: FloatArray) -> Camera:
+        ref = self.reference
+        f0 = ref.focal
+        c0 = ref.to_camera(self.centre[None])[0]
+        pix0 = ref.project(self.centre[None])[0]
+        f = f0 * np.exp(x[6])
+        z = c0[2] * np.exp(x[6] - x[5])
+        u = pix0[0] + x[3] * ref.width
+        v = pix0[1] + x[4] * ref.height
+        K = ref.K.copy()
+        K[0, 0] *= f / f0
+        K[1, 1] *= f / f0
+        centre_cam = z * np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0])
+        R = Rotation.from_rotvec(x[:3]).as_matrix() @ ref.R
+        return Camera(K, R, centre_cam - R @ self.centre, ref.width, ref.height)
+
+
+PARAMETRIZATIONS = ("theta", "view")
