@@ -8,7 +8,7 @@ from conftest import projection_error, view
 from test_register import perturbed
 
 from vehicle_pose.parametrize import ThetaParams, ViewParams
-from vehicle_pose.register import RegistrationOptions, register
+from vehicle_pose.pipeline import RegistrationOptions, register
 from vehicle_pose.synth import LIGHTINGS, synthesize
 
 

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from vehicle_pose.camera import Camera
 from vehicle_pose.errors import CameraError, PoseError
-from vehicle_pose.register import RegistrationOptions, register
+from vehicle_pose.pipeline import RegistrationOptions, register
 from vehicle_pose.synth import LIGHTINGS, synthesize
 
 pytestmark = pytest.mark.slow

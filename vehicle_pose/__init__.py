@@ -21,7 +21,7 @@ from .loss import InvariantLoss, PhotoTarget, invariant_loss
 from .mesh import Mesh, load_mesh
 from .photo import decode_photo, load_photo
 from .pose import Theta, camera_to_theta, theta_to_camera
-from .register import RegistrationOptions, RegistrationResult, register
+from .pipeline import RegistrationOptions, RegistrationResult, register
 
 __version__ = "0.1.0"
 

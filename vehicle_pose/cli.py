@@ -21,7 +21,7 @@ from .optimize import OPTIMIZERS
 from .overlay import draw_overlay, save_png
 from .parametrize import PARAMETRIZATIONS
 from .photo import load_photo
-from .register import RegistrationOptions, register
+from .pipeline import RegistrationOptions, register
 
 __all__ = ["main"]
 
@@ -52,9 +52,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--models-dir", help="model library folder (default: this checkout's vehicle_models/)")
     r.add_argument("--loss", default="invariant", choices=sorted(LOSSES))
     r.add_argument("--optimizer", default="nelder-mead", choices=sorted(OPTIMIZERS))
-    r.add_argument("--parametrization", default="theta", choices=PARAMETRIZATIONS,
-                   help="search coordinates: the paper's theta, or a view perturbation (see docs/engine.md)")
-    r.add_argument("--resegment", action="store_true", help="re-run GrabCut after each coarse level")
+    r.add_argument("--parametrization", default="view", choices=PARAMETRIZATIONS,
+                   help="search coordinates: a view perturbation (default) or the paper's theta")
+    r.add_argument("--no-resegment", action="store_true", help="run GrabCut once, from the start pose only")
     r.add_argument("--side", default="auto", choices=("auto", "left", "right"), help="visible side")
     r.add_argument("--color", action="store_true", help="score the three colour channels (n = 3)")
     r.add_argument("--no-grabcut", action="store_true", help="keep the photo's background")
@@ -87,7 +87,7 @@ def _register(args: argparse.Namespace) -> int:
         max_evaluations=args.max_evaluations,
         side=args.side,
         parametrization=args.parametrization,
-        resegment=args.resegment,
+        resegment=not args.no_resegment,
     )
     result = register(photo, model, init_camera=init, bbox=args.bbox, options=options)
     out = Path(args.out)

@@ -26,6 +26,7 @@ def grabcut_foreground(
     margin: float = 0.06,
     max_size: int = 320,
     iterations: int = 4,
+    sure_core: bool = False,
 ) -> npt.NDArray[np.bool_]:
     """The vehicle's pixels, seeded by the silhouette of a start pose.
 
@@ -40,6 +41,8 @@ def grabcut_foreground(
     max_size : int, keyword-only
         GrabCut runs on the crop reduced to at most this many pixels on its longer side.
     iterations : int, keyword-only
+    sure_core : bool, keyword-only
+        Mark the shrunk silhouette as certain foreground (for a pose already close).
 
     Returns
     -------
@@ -69,7 +72,7 @@ def grabcut_foreground(
     mask = np.full(crop_sil.shape, cv2.GC_BGD, np.uint8)
     mask[grown] = cv2.GC_PR_BGD
     mask[inside] = cv2.GC_PR_FGD
-    mask[shrunk] = cv2.GC_PR_FGD
+    mask[shrunk] = cv2.GC_FGD if sure_core else cv2.GC_PR_FGD
     fallback = np.zeros((H, W), bool)
     fallback[y0:y1, x0:x1] = cv2.resize(grown.astype(np.uint8), (x1 - x0, y1 - y0), interpolation=cv2.INTER_NEAREST) > 0
     if not (mask == cv2.GC_BGD).any() or inside.sum() < 16:
