@@ -78,7 +78,7 @@ def sweep(n: int) -> dict:
 def losses(n: int) -> dict:
     rows, runs = [], {}
     cases = [(m, r, t, p, perturbed(t, rng, 10.0)) for m, r, t, p, rng in synthetic_cases(n, seed=1)]
-    for loss in ("invariant", "invariant-gray", "invariant-parts", "correlation", "squared", "silhouette-iou", "mutual-information"):
+    for loss in ("invariant", "invariant-paper", "invariant-parts", "correlation", "squared", "silhouette-iou", "mutual-information"):
         for color in ((False, True) if loss == "invariant" else (False,)):
             opts = RegistrationOptions(loss=loss, color=color)
             out = [run_one(m, r, p, t, s, opts) for m, r, t, p, s in cases]

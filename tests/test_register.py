@@ -101,7 +101,7 @@ def test_bad_hints_are_clear_errors(sedan, renderer):
         register(photo, sedan, init_camera=truth, options=RegistrationOptions(loss="nope"), renderer=renderer)
 
 
-@pytest.mark.parametrize("loss", ["invariant-gray", "correlation", "squared", "silhouette-iou", "mutual-information", "invariant-parts"])
+@pytest.mark.parametrize("loss", ["invariant-paper", "correlation", "squared", "silhouette-iou", "mutual-information", "invariant-parts"])
 def test_alternative_losses_run_through_the_same_pipeline(sedan, renderer, loss):
     truth = view(sedan, 60.0, 15.0, width=320, height=240, focal=450.0)
     photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=6)

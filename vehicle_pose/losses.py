@@ -39,9 +39,14 @@ def correlation_loss(target: PhotoTarget) -> BoundLoss:
     return _GrayTarget(target, channels=headlight_shading)
 
 
-def invariant_gray_loss(target: PhotoTarget) -> BoundLoss:
-    """The paper's exact setting: gray photo (n = 1), m = 4 normal channels."""
-    return _GrayTarget(target)
+def paper_channels(frame: Frame) -> npt.NDArray[np.float32]:
+    """The paper's m = 4 channels (k_a, k_d * normal), without the coverage channel."""
+    return frame.covered(frame.attrs)
+
+
+def invariant_paper_loss(target: PhotoTarget) -> BoundLoss:
+    """The paper's exact setting: gray photo (n = 1), m = 4 channels (k_a, k_d * normal)."""
+    return _GrayTarget(target, channels=paper_channels)
 
 
 class SquaredErrorLoss:
@@ -110,7 +115,7 @@ class MutualInformationLoss:
 
 LOSSES: dict[str, Callable[[PhotoTarget], BoundLoss]] = {
     "invariant": InvariantLoss,
-    "invariant-gray": invariant_gray_loss,
+    "invariant-paper": invariant_paper_loss,
     "invariant-parts": lambda target: InvariantLoss(target, channels=part_channels),
     "correlation": correlation_loss,
     "squared": SquaredErrorLoss,

@@ -68,7 +68,7 @@ class RegistrationOptions:
     resegment_margin : float
     color : bool
         Score colour photos with n = 3 channels; by default the photo's luminance is scored
-        (n = 1, the paper's setting), which measured more accurate (docs/benchmarks.md).
+        (n = 1, the paper's setting); docs/benchmarks.md compares the two.
     max_evaluations : int
         Loss evaluations allowed per level.
     side : str
