@@ -17,8 +17,8 @@ from vehicle_pose.library import VehicleModel
 from vehicle_pose.losses import make_loss
 from vehicle_pose.mesh import load_mesh
 from vehicle_pose.metadata import ModelInfo
-from vehicle_pose.procedural import SEDAN, build_car
 from vehicle_pose.pipeline import RegistrationOptions, _face_budget, make_target
+from vehicle_pose.procedural import SEDAN, build_car
 from vehicle_pose.render import Frame, Renderer
 from vehicle_pose.synth import look_at_camera, synthesize
 

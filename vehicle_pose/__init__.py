@@ -20,8 +20,8 @@ from .library import ModelLibrary, VehicleModel, model_from_mesh
 from .loss import InvariantLoss, PhotoTarget, invariant_loss
 from .mesh import Mesh, load_mesh
 from .photo import decode_photo, load_photo
-from .pose import Theta, camera_to_theta, theta_to_camera
 from .pipeline import RegistrationOptions, RegistrationResult, register
+from .pose import Theta, camera_to_theta, theta_to_camera
 
 __version__ = "0.1.0"
 

@@ -22,8 +22,8 @@ from .library import VehicleModel
 from .loss import PhotoTarget
 from .losses import LOSSES, make_loss
 from .optimize import OPTIMIZERS, Optimizer
-from .photo import is_gray
 from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
+from .photo import is_gray
 from .pose import Side, Theta, camera_to_theta, visible_side
 from .render import Renderer
 from .segment import grabcut_foreground

@@ -11,8 +11,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .camera import Camera
+from .library import ModelLibrary
+from .metadata import parse_axis
 from .synth import LIGHTINGS, look_at_camera, synthesize
 
 __all__ = ["write_sample"]
@@ -20,11 +23,6 @@ __all__ = ["write_sample"]
 
 def write_sample(folder: str | Path, model_id: str = "sedan") -> list[Path]:
     """Write the shipped sample: a synthetic photo, a rough start camera and the true camera."""
-    from scipy.spatial.transform import Rotation
-
-    from .library import ModelLibrary
-    from .metadata import parse_axis
-
     model = ModelLibrary().load(model_id)
     centre, _ = model.mesh.sphere
     truth = look_at_camera(
