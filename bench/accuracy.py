@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 from common import perturbed, projection_error, table, write_report
 
-from vehicle_pose.camera import Camera
+from vehicle_pose.camera import Camera, look_at_camera
 from vehicle_pose.library import ModelLibrary, model_from_mesh
 from vehicle_pose.photo import load_photo
 from vehicle_pose.pipeline import RegistrationOptions, register
 from vehicle_pose.render import Renderer
-from vehicle_pose.synth import LIGHTINGS, look_at_camera, synthesize
+from vehicle_pose.synth import LIGHTINGS, synthesize
 
 SUCCESS_PX = 5.0
 

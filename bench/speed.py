@@ -13,14 +13,16 @@ import time
 import numpy as np
 from common import table, write_report
 
+from vehicle_pose.camera import look_at_camera
 from vehicle_pose.library import VehicleModel
+from vehicle_pose.loss import make_target
 from vehicle_pose.losses import make_loss
 from vehicle_pose.mesh import load_mesh
 from vehicle_pose.metadata import ModelInfo
-from vehicle_pose.pipeline import RegistrationOptions, _face_budget, make_target
+from vehicle_pose.pipeline import RegistrationOptions, _face_budget
 from vehicle_pose.procedural import SEDAN, build_car
 from vehicle_pose.render import Frame, Renderer
-from vehicle_pose.synth import look_at_camera, synthesize
+from vehicle_pose.synth import synthesize
 
 
 def dense_sedan(target_faces: int, tmp: str) -> VehicleModel:

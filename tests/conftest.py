@@ -6,13 +6,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from vehicle_pose.camera import Camera
+from vehicle_pose.camera import Camera, look_at_camera
 from vehicle_pose.gl import get_context
 from vehicle_pose.library import ModelLibrary, VehicleModel
 from vehicle_pose.mesh import Mesh, Part
 from vehicle_pose.metadata import parse_axis
 from vehicle_pose.render import Renderer
-from vehicle_pose.synth import look_at_camera
 
 
 @pytest.fixture(scope="session")

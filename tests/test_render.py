@@ -7,9 +7,8 @@ import pytest
 import trimesh
 from conftest import mesh_from_trimesh
 
-from vehicle_pose.camera import Camera
+from vehicle_pose.camera import Camera, look_at_camera
 from vehicle_pose.render import Frame
-from vehicle_pose.synth import look_at_camera
 
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
 

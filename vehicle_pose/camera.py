@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from .errors import CameraError
 
-__all__ = ["Camera"]
+__all__ = ["Camera", "look_at_camera"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -129,3 +129,34 @@ class Camera:
         except json.JSONDecodeError as exc:
             raise CameraError(f"camera file {path} is not valid JSON: {exc.msg} at line {exc.lineno}") from None
         return cls.from_dict(data)
+
+
+def look_at_camera(
+    centre: npt.ArrayLike,
+    forward: npt.ArrayLike,
+    up: npt.ArrayLike,
+    *,
+    azimuth_deg: float,
+    elevation_deg: float,
+    distance: float,
+    focal: float,
+    width: int,
+    height: int,
+) -> Camera:
+    """A camera looking at ``centre`` from a direction given relative to the vehicle.
+
+    Azimuth 0 looks at the vehicle's front, 90 at its left side; elevation is above the ground.
+    """
+    f = np.asarray(forward, np.float64)
+    u = np.asarray(up, np.float64)
+    left = np.cross(u, f)
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    d = np.cos(el) * (np.cos(az) * f + np.sin(az) * left) + np.sin(el) * u
+    z = -d
+    y = -(u - (u @ z) * z)
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    R = np.stack([x, y, z])
+    eye = np.asarray(centre, np.float64) + distance * d
+    K = np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return Camera(K, R, -R @ eye, width, height)

@@ -14,13 +14,12 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
+from .camera import Camera, look_at_camera
 from .errors import CameraError
 from .library import VehicleModel
-from .loss import InvariantLoss, PhotoTarget
+from .loss import InvariantLoss, make_target
 from .metadata import parse_axis
 from .render import Renderer
-from .synth import look_at_camera
 
 __all__ = ["parse_bbox", "central_box", "camera_for_view", "start_from_box"]
 
@@ -109,10 +108,7 @@ def start_from_box(
     cv2.setRNGSeed(0)
     cv2.grabCut(cv2.cvtColor(small, cv2.COLOR_RGB2BGR), mask, rect, bgd, fgd, 3, cv2.GC_INIT_WITH_RECT)
     fg = (mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)
-    image = small.astype(np.float64) / 255.0
-    image[~fg] = 0.0
-    target = PhotoTarget(image, np.ones((h, w)), fg)
-    loss = InvariantLoss(target)
+    loss = InvariantLoss(make_target(small, fg, color=True))
     mesh = model.lod(max_faces)
     best: tuple[float, float, float] | None = None
     for az in azimuths:

@@ -18,10 +18,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from .photo import is_gray
 from .render import Frame
 
 __all__ = [
     "PhotoTarget",
+    "make_target",
     "InvariantLoss",
     "invariant_loss",
     "loss_from_moments",
@@ -73,6 +75,16 @@ class PhotoTarget:
             g = img[..., 0] if img.shape[2] == 1 else img @ np.array([0.299, 0.587, 0.114])[: img.shape[2]]
             self._flat["gray"] = np.ascontiguousarray(g)
         return self._flat["gray"]
+
+
+def make_target(rgb: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], *, color: bool) -> PhotoTarget:
+    """Photo attributes in [0, 1] with the background zeroed (n = 3 for colour, else 1)."""
+    img = rgb.astype(np.float64) / 255.0
+    if not color or is_gray(rgb):
+        img = img @ np.array([0.299, 0.587, 0.114])
+        img = img[..., None]
+    img[~foreground] = 0.0
+    return PhotoTarget(img, np.ones(foreground.shape), foreground)
 
 
 def _inv_sqrt(cov: FloatArray) -> FloatArray:

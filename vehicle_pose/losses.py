@@ -13,7 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .loss import InvariantLoss, PhotoTarget, part_channels
-from .render import Frame
+from .render import Frame, headlight
 
 __all__ = ["LOSSES", "make_loss", "headlight_shading"]
 
@@ -22,8 +22,7 @@ BoundLoss = Callable[[Frame], float]
 
 def headlight_shading(frame: Frame) -> npt.NDArray[np.float32]:
     """Gray shading (N, 1) of the covered pixels under a light at the camera."""
-    a = frame.covered(frame.attrs)
-    return (0.3 * a[:, 0] + 0.7 * np.abs(a[:, 3]))[:, None]
+    return headlight(frame.covered(frame.attrs))[:, None]
 
 
 class _GrayTarget(InvariantLoss):

@@ -11,7 +11,7 @@ import numpy.typing as npt
 from .camera import Camera
 from .mesh import Mesh
 from .metadata import WheelGeometry
-from .render import Renderer
+from .render import Renderer, headlight
 
 __all__ = ["draw_overlay", "save_png"]
 
@@ -46,7 +46,7 @@ def draw_overlay(
     labels = frame.full(frame.labels)
     if shade > 0.0:
         attrs = frame.full(frame.attrs)
-        gray = np.clip(0.3 * attrs[..., 0] + 0.7 * np.abs(attrs[..., 3]), 0.0, 1.0) * 255.0
+        gray = np.clip(headlight(attrs), 0.0, 1.0) * 255.0
         cov = labels > 0
         out[cov] = ((1.0 - shade) * out[cov] + shade * gray[cov, None]).astype(np.uint8)
     edges = np.zeros((H, W), np.uint8)

@@ -19,16 +19,15 @@ from .camera import Camera
 from .errors import CameraError, PoseError
 from .initialize import central_box, parse_bbox, start_from_box
 from .library import VehicleModel
-from .loss import PhotoTarget
+from .loss import make_target
 from .losses import LOSSES, make_loss
 from .optimize import OPTIMIZERS, Optimizer
 from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
-from .photo import is_gray
 from .pose import Side, Theta, camera_to_theta, visible_side
 from .render import Renderer
 from .segment import grabcut_foreground
 
-__all__ = ["RegistrationOptions", "LevelReport", "RegistrationResult", "register", "make_target"]
+__all__ = ["RegistrationOptions", "LevelReport", "RegistrationResult", "register"]
 
 Progress = Callable[[str, int, float], None]
 _INVALID = 10.0
@@ -157,16 +156,6 @@ class RegistrationResult:
             "cam_t_m2c": cam.t.tolist(),
             "cam_K": cam.K.reshape(-1).tolist(),
         }
-
-
-def make_target(rgb: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], *, color: bool) -> PhotoTarget:
-    """Photo attributes in [0, 1] with the background zeroed (n = 3 for colour, else 1)."""
-    img = rgb.astype(np.float64) / 255.0
-    if not color or is_gray(rgb):
-        img = img @ np.array([0.299, 0.587, 0.114])
-        img = img[..., None]
-    img[~foreground] = 0.0
-    return PhotoTarget(img, np.ones(foreground.shape), foreground)
 
 
 def _resize(rgb: npt.NDArray[np.uint8], width: int, height: int) -> npt.NDArray[np.uint8]:

@@ -22,7 +22,7 @@ from .errors import RenderError
 from .gl import get_context
 from .mesh import KINDS, Mesh, Part
 
-__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes"]
+__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight"]
 
 _VERTEX_SHADER = """
 #version 330
@@ -78,6 +78,11 @@ void main() {
     out_label = v_label;
 }
 """
+
+
+def headlight(attrs: npt.NDArray[np.floating]) -> npt.NDArray[np.floating]:
+    """Gray shading ``0.3 k_a + 0.7 k_d |n_z|`` of rendered attributes (..., 4): a light at the camera."""
+    return 0.3 * attrs[..., 0] + 0.7 * np.abs(attrs[..., 3])
 
 
 def clip_planes(mesh: Mesh, camera: Camera) -> tuple[float, float] | None:

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import Camera
+from .camera import Camera, look_at_camera
 from .library import ModelLibrary
 from .metadata import parse_axis
-from .synth import LIGHTINGS, look_at_camera, synthesize
+from .synth import LIGHTINGS, synthesize
 
 __all__ = ["write_sample"]
 

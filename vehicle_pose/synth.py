@@ -18,7 +18,7 @@ from .camera import Camera
 from .mesh import Mesh
 from .render import Renderer
 
-__all__ = ["Lighting", "LIGHTINGS", "synthesize", "look_at_camera"]
+__all__ = ["Lighting", "LIGHTINGS", "synthesize"]
 
 
 @dataclass(frozen=True)
@@ -38,37 +38,6 @@ LIGHTINGS: dict[str, Lighting] = {
     "top": Lighting((0.3, 0.3, 0.3), (0.45, 0.5, 0.55), (0.0, -1.0, -0.2), 0.35),
     "negative": Lighting((0.25, 0.25, 0.25), (0.5, 0.5, 0.5), (0.3, -0.4, -1.0), 0.3, negative=True),
 }
-
-
-def look_at_camera(
-    centre: npt.ArrayLike,
-    forward: npt.ArrayLike,
-    up: npt.ArrayLike,
-    *,
-    azimuth_deg: float,
-    elevation_deg: float,
-    distance: float,
-    focal: float,
-    width: int,
-    height: int,
-) -> Camera:
-    """A camera looking at ``centre`` from a direction given relative to the vehicle.
-
-    Azimuth 0 looks at the vehicle's front, 90 at its left side; elevation is above the ground.
-    """
-    f = np.asarray(forward, np.float64)
-    u = np.asarray(up, np.float64)
-    left = np.cross(u, f)
-    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
-    d = np.cos(el) * (np.cos(az) * f + np.sin(az) * left) + np.sin(el) * u
-    z = -d
-    y = -(u - (u @ z) * z)
-    y /= np.linalg.norm(y)
-    x = np.cross(y, z)
-    R = np.stack([x, y, z])
-    eye = np.asarray(centre, np.float64) + distance * d
-    K = np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-    return Camera(K, R, -R @ eye, width, height)
 
 
 def _background(height: int, width: int, rng: np.random.Generator) -> npt.NDArray[np.float64]:
