@@ -62,10 +62,14 @@ def camera_for_view(
     bw, bh = box[2] - box[0], box[3] - box[1]
     bc = np.array([0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3])])
     distance = focal * 2.0 * radius / max(min(bw, bh), 1.0) + radius
-    cam = look_at_camera(
-        centre, fwd, up, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg,
-        distance=distance, focal=focal, width=width, height=height,
-    )
+
+    def at(d: float) -> Camera:
+        return look_at_camera(
+            centre, fwd, up, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg,
+            distance=d, focal=focal, width=width, height=height,
+        )
+
+    cam = at(distance)
     for _ in range(3):
         uv = cam.project(pts)
         if not np.all(np.isfinite(uv)):
@@ -73,10 +77,7 @@ def camera_for_view(
         else:
             span = uv.max(0) - uv.min(0)
             distance *= max(span[0] / bw, span[1] / bh)
-        cam = look_at_camera(
-            centre, fwd, up, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg,
-            distance=distance, focal=focal, width=width, height=height,
-        )
+        cam = at(distance)
         uv = cam.project(pts)
         shift = bc - 0.5 * (uv.min(0) + uv.max(0))
         depth = float(cam.to_camera(centre[None])[0, 2])

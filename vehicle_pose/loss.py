@@ -54,7 +54,7 @@ class PhotoTarget:
     image: FloatArray
     weights: FloatArray
     foreground: npt.NDArray[np.bool_]
-    _flat: dict[str, FloatArray] = field(default_factory=dict, repr=False, compare=False)
+    _cache: dict[str, FloatArray] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def height(self) -> int:
@@ -70,11 +70,11 @@ class PhotoTarget:
 
     def gray(self) -> FloatArray:
         """(H, W) luminance of the image (the image itself when n = 1)."""
-        if "gray" not in self._flat:
+        if "gray" not in self._cache:
             img = self.image
             g = img[..., 0] if img.shape[2] == 1 else img @ np.array([0.299, 0.587, 0.114])[: img.shape[2]]
-            self._flat["gray"] = np.ascontiguousarray(g)
-        return self._flat["gray"]
+            self._cache["gray"] = np.ascontiguousarray(g)
+        return self._cache["gray"]
 
 
 def make_target(rgb: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], *, color: bool) -> PhotoTarget:

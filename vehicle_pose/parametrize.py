@@ -13,6 +13,7 @@ regular for every view.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -75,13 +76,18 @@ class ViewParams:
     def steps(self) -> FloatArray:
         return np.array([0.08, 0.08, 0.08, 0.03, 0.03, 0.05, 0.3])
 
+    @cached_property
+    def _centre_view(self) -> tuple[float, FloatArray]:
+        """Depth (mesh units) and pixel (2,) of the model centre in the reference camera."""
+        ref = self.reference
+        return float(ref.to_camera(self.centre[None])[0, 2]), ref.project(self.centre[None])[0]
+
     def camera(self, x: FloatArray) -> Camera:
         ref = self.reference
         f0 = ref.focal
-        c0 = ref.to_camera(self.centre[None])[0]
-        pix0 = ref.project(self.centre[None])[0]
+        depth0, pix0 = self._centre_view
         f = f0 * np.exp(x[6])
-        z = c0[2] * np.exp(x[6] - x[5])
+        z = depth0 * np.exp(x[6] - x[5])
         u = pix0[0] + x[3] * ref.width
         v = pix0[1] + x[4] * ref.height
         K = ref.K.copy()

@@ -227,7 +227,6 @@ def register(
     """
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    given_mask = foreground is not None
     if photo.ndim != 3 or photo.shape[2] != 3 or photo.dtype != np.uint8:
         raise ValueError("photo must be an (H, W, 3) uint8 RGB array")
     H0, W0 = photo.shape[:2]
@@ -271,6 +270,7 @@ def register(
         raise PoseError("the start pose puts the model off-screen or behind the camera")
 
     t = time.perf_counter()
+    segment_again = options.grabcut and options.resegment and foreground is None
     if foreground is not None:
         if foreground.shape != (H0, W0):
             raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
@@ -279,7 +279,6 @@ def register(
         foreground = grabcut_foreground(work, silhouette, margin=options.grabcut_margin)
     else:
         foreground = np.ones((Hf, Wf), bool)
-    segment_again = options.grabcut and options.resegment and not given_mask
     timings["grabcut"] = time.perf_counter() - t
 
     camera = start
@@ -321,7 +320,7 @@ def register(
             progress(stage, res.evaluations, res.fun)
         if segment_again and li < len(sizes) - 1:
             t = time.perf_counter()
-            current = renderer.render(model.lod(options.min_faces), camera).coverage
+            current = renderer.render(coarse_mesh, camera).coverage
             if current.sum() >= 16:
                 foreground = grabcut_foreground(work, current, margin=options.resegment_margin, sure_core=True)
             timings["grabcut"] += time.perf_counter() - t
