@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
-# Create .venv/ at the repository root and install the project with its test tools.
-# Installs Mesa's EGL driver from Debian's packages when it is missing (needs root or sudo).
+# Create .venv/ at the repository root and install the engine, the service and the test tools.
+# Installs from Debian's packages what is missing (needs root or sudo): Mesa's EGL driver,
+# redis-server (the embedded broker of vehicle-pose-service) and chromium (the admin page test).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 need_apt=()
 ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so' || need_apt+=(libegl-mesa0 libegl1 libgl1-mesa-dri libgbm1)
+command -v redis-server >/dev/null || need_apt+=(redis-server)
+command -v chromium >/dev/null || need_apt+=(chromium)
 if [ ${#need_apt[@]} -gt 0 ]; then
   sudo_cmd=""
   [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
@@ -15,5 +18,5 @@ fi
 
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e '.[test]'
+.venv/bin/python -m pip install -q -e '.[service,test]'
 echo "ready: .venv/bin/vehicle-pose"

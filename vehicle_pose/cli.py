@@ -17,6 +17,7 @@ from .camera import Camera
 from .errors import RenderError, VehiclePoseError
 from .library import ModelLibrary, VehicleModel, model_from_mesh
 from .losses import LOSSES
+from .metadata import UNITS
 from .optimize import OPTIMIZERS
 from .overlay import draw_overlay, save_png
 from .parametrize import PARAMETRIZATIONS
@@ -24,9 +25,6 @@ from .photo import load_photo
 from .pipeline import RegistrationOptions, register
 
 __all__ = ["main"]
-
-_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
-
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2, as for other bad input
@@ -48,7 +46,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--bbox", help="vehicle box X0,Y0,X1,Y1 in pixels (used without --init-camera)")
     r.add_argument("--up", default="+z", help="mesh up axis, for a mesh path (default +z)")
     r.add_argument("--forward", default="+x", help="mesh forward axis, for a mesh path (default +x)")
-    r.add_argument("--units", default="m", choices=sorted(_UNITS), help="mesh units, for a mesh path")
+    r.add_argument("--units", default="m", choices=sorted(UNITS), help="mesh units, for a mesh path")
     r.add_argument("--models-dir", help="model library folder (default: this checkout's vehicle_models/)")
     r.add_argument("--loss", default="invariant", choices=sorted(LOSSES))
     r.add_argument("--optimizer", default="nelder-mead", choices=sorted(OPTIMIZERS))
@@ -70,7 +68,7 @@ def _parser() -> argparse.ArgumentParser:
 def _load_model(args: argparse.Namespace) -> VehicleModel:
     path = Path(args.model)
     if path.suffix and (path.is_file() or "/" in args.model or "\\" in args.model):
-        return model_from_mesh(path, up=args.up, forward=args.forward, units=args.units, meters_per_unit=_UNITS[args.units])
+        return model_from_mesh(path, up=args.up, forward=args.forward, units=args.units, meters_per_unit=UNITS[args.units])
     return ModelLibrary(args.models_dir).load(args.model)
 
 

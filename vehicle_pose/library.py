@@ -6,16 +6,20 @@ cache, so a worker that registers many photos of the same model loads its mesh o
 
 from __future__ import annotations
 
+import json
+import re
+import shutil
 import threading
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from .errors import ModelError, UnknownModelError
 from .mesh import Mesh, load_mesh
-from .metadata import ModelInfo, WheelGeometry, estimate_wheels, parse_axis
+from .metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
 
-__all__ = ["VehicleModel", "ModelLibrary", "default_library_root", "model_from_mesh"]
+__all__ = ["VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
 
 
 def default_library_root() -> Path:
@@ -73,35 +77,101 @@ def model_from_mesh(
     return VehicleModel(_complete(info, mesh), mesh)
 
 
+MODEL_ID = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
+"""Model ids: lower-case letters, digits, ``-`` and ``_``, at most 64 characters."""
+
+
+def install_model(
+    root: str | Path,
+    model_id: str,
+    mesh_file: str | Path,
+    *,
+    name: str | None = None,
+    up: str = "+z",
+    forward: str = "+x",
+    units: str = "m",
+) -> ModelInfo:
+    """Copy a mesh into ``root/model_id/`` with a ``model.json`` whose wheels are estimated.
+
+    The mesh is loaded first, so a file that is not a usable mesh (no faces, unknown format,
+    same up and forward axes) raises ModelError and leaves nothing behind. The metadata is
+    written last, so a half-copied model is never listed.
+    """
+    if not MODEL_ID.match(model_id):
+        raise ModelError(f"model id {model_id!r} must match {MODEL_ID.pattern}")
+    if units not in UNITS:
+        raise ModelError(f"unknown units {units!r}; choose one of {', '.join(UNITS)}")
+    src = Path(mesh_file)
+    model = model_from_mesh(src, up=up, forward=forward, units=units, meters_per_unit=UNITS[units])
+    folder = Path(root) / model_id
+    if (folder / "model.json").exists():
+        raise ModelError(f"model {model_id!r} exists already")
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh_name = "model" + src.suffix.lower()
+    shutil.copyfile(src, folder / mesh_name)
+    info = replace(model.info, id=model_id, name=name or model_id, mesh_path=(folder / mesh_name).resolve())
+    data = info.to_dict() | {"mesh": mesh_name, "source": "uploaded"}
+    tmp = folder / "model.json.tmp"
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    tmp.replace(folder / "model.json")
+    return info
+
+
 class ModelLibrary:
-    """Models found under ``root`` (default: :func:`default_library_root`).
+    """Models found under ``root`` (default: :func:`default_library_root`) and ``extra_roots``.
 
     Parameters
     ----------
     root : path, optional
+    extra_roots : sequence of paths, keyword-only
+        Further folders searched after ``root`` (for example models uploaded to a service);
+        a model id found in an earlier folder hides the same id in a later one.
     cache_size : int, keyword-only
         How many loaded models to keep in memory.
     """
 
-    def __init__(self, root: str | Path | None = None, *, cache_size: int = 8) -> None:
+    def __init__(
+        self,
+        root: str | Path | None = None,
+        *,
+        extra_roots: Sequence[str | Path] = (),
+        cache_size: int = 8,
+    ) -> None:
         self.root = Path(root) if root is not None else default_library_root()
+        self.roots = (self.root, *(Path(r) for r in extra_roots))
         self._cache: OrderedDict[str, VehicleModel] = OrderedDict()
         self._lock = threading.Lock()
         self._cache_size = cache_size
 
     def ids(self) -> list[str]:
         """Ids of every model in the library, sorted."""
-        if not self.root.is_dir():
-            return []
-        return sorted(p.parent.name for p in self.root.glob("*/model.json"))
+        found = {p.parent.name for r in self.roots if r.is_dir() for p in r.glob("*/model.json")}
+        return sorted(found)
+
+    def __contains__(self, model_id: object) -> bool:
+        return isinstance(model_id, str) and self._metadata_path(model_id) is not None
+
+    def _metadata_path(self, model_id: str) -> Path | None:
+        if not model_id or "/" in model_id or "\\" in model_id or model_id.startswith("."):
+            return None
+        for r in self.roots:
+            path = r / model_id / "model.json"
+            if path.is_file():
+                return path
+        return None
 
     def info(self, model_id: str) -> ModelInfo:
         """Metadata of one model; UnknownModelError if there is none with this id."""
-        path = self.root / model_id / "model.json"
-        if "/" in model_id or "\\" in model_id or model_id.startswith(".") or not path.is_file():
+        path = self._metadata_path(model_id)
+        if path is None:
             known = ", ".join(self.ids()) or "none"
             raise UnknownModelError(f"unknown model {model_id!r} (known: {known})")
         return ModelInfo.from_json(path)
+
+    def forget(self, model_id: str) -> None:
+        """Drop a cached model (after its files changed)."""
+        with self._lock:
+            self._cache.pop(model_id, None)
 
     def load(self, model_id: str) -> VehicleModel:
         """The loaded model, from the cache when it was loaded before."""

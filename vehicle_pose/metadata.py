@@ -19,10 +19,14 @@ import numpy.typing as npt
 from .errors import ModelError
 from .pose import Side, SideGeometry
 
-__all__ = ["WheelGeometry", "ModelInfo", "parse_axis", "estimate_wheels"]
+__all__ = ["UNITS", "WheelGeometry", "ModelInfo", "parse_axis", "estimate_wheels"]
 
 FloatArray = npt.NDArray[np.float64]
 _AXES = {"x": 0, "y": 1, "z": 2}
+
+
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+"""Metres per unit of the length units a mesh may be given in."""
 
 
 def parse_axis(text: str) -> FloatArray:

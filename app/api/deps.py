@@ -1,0 +1,65 @@
+"""Request dependencies: database session, settings, the authenticated client."""
+
+from __future__ import annotations
+
+import base64
+import binascii
+from typing import Annotated
+
+from fastapi import Depends, Request
+from sqlalchemy.orm import Session
+
+from ..core.config import Settings, get_settings
+from ..core.db import get_session
+from ..core.problems import Problem
+from ..core.security import client_for_key
+from ..models import Client
+
+SessionDep = Annotated[Session, Depends(get_session)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+_BASIC_CHALLENGE = {"WWW-Authenticate": 'Basic realm="vehicle-pose admin", charset="UTF-8"'}
+
+
+def _presented_key(request: Request) -> str | None:
+    """The API key from ``Authorization: Bearer <key>`` or Basic auth (the password is the key)."""
+    header = request.headers.get("authorization", "")
+    scheme, _, value = header.partition(" ")
+    if scheme.lower() == "bearer" and value.strip():
+        return value.strip()
+    if scheme.lower() == "basic" and value.strip():
+        try:
+            _, _, password = base64.b64decode(value.strip(), validate=True).decode().partition(":")
+        except (binascii.Error, UnicodeDecodeError):
+            return None
+        return password or None
+    return None
+
+
+def current_client(request: Request, session: SessionDep) -> Client:
+    """The client whose key came with the request; 401 otherwise."""
+    key = _presented_key(request)
+    client = client_for_key(session, key) if key else None
+    if client is None:
+        raise Problem(
+            401,
+            "unauthorized",
+            "send an API key as 'Authorization: Bearer <key>'",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+    return client
+
+
+def admin_client(request: Request, session: SessionDep) -> Client:
+    """An admin client (API key or Basic auth from a browser); 401 without a key, 403 for a client key."""
+    key = _presented_key(request)
+    client = client_for_key(session, key) if key else None
+    if client is None:
+        raise Problem(401, "unauthorized", "admin credentials required", headers=_BASIC_CHALLENGE)
+    if not client.is_admin:
+        raise Problem(403, "forbidden", "this key is not an admin key")
+    return client
+
+
+CurrentClient = Annotated[Client, Depends(current_client)]
+AdminClient = Annotated[Client, Depends(admin_client)]

@@ -1,0 +1,106 @@
+"""/admin: a server-rendered page of recent registrations, filterable, with a detail view."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import HTMLResponse
+from fastapi.templating import Jinja2Templates
+from sqlalchemy import func, select
+
+from ...core.library import get_library
+from ...core.problems import Problem
+from ...core.storage import ObjectMissing, get_storage
+from ...models import Client, JobStatus, Registration
+from ..deps import AdminClient, SessionDep
+
+router = APIRouter(prefix="/admin", tags=["admin"], include_in_schema=False)
+templates = Jinja2Templates(directory=Path(__file__).resolve().parents[2] / "templates")
+PER_PAGE = 20
+
+
+def _job(session: SessionDep, job_id: str) -> Registration:
+    job = session.get(Registration, job_id) if len(job_id) <= 64 else None
+    if job is None:
+        raise Problem(404, "not-found", f"no registration {job_id!r}")
+    return job
+
+
+@router.get("", response_class=HTMLResponse)
+def recent(
+    request: Request,
+    admin: AdminClient,
+    session: SessionDep,
+    status: Annotated[str | None, Query()] = None,
+    model: Annotated[str | None, Query()] = None,
+    page: Annotated[int, Query(ge=1)] = 1,
+) -> HTMLResponse:
+    """Recent registrations, newest first."""
+    status = status or None
+    model = model or None
+    if status is not None and status not in {s.value for s in JobStatus}:
+        raise Problem(422, "validation-error", f"unknown status {status!r}")
+    query = select(Registration)
+    if status:
+        query = query.where(Registration.status == status)
+    if model:
+        query = query.where(Registration.model_id == model)
+    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    pages = max(1, math.ceil(total / PER_PAGE))
+    jobs = session.scalars(
+        query.order_by(Registration.created_at.desc(), Registration.id).offset((page - 1) * PER_PAGE).limit(PER_PAGE)
+    ).all()
+    models = sorted(set(get_library().ids()) | set(session.scalars(select(Registration.model_id).distinct())))
+    return templates.TemplateResponse(
+        request,
+        "admin_list.html",
+        {
+            "jobs": jobs,
+            "status": status,
+            "model": model,
+            "page": page,
+            "pages": pages,
+            "total": total,
+            "statuses": [s.value for s in JobStatus],
+            "models": models,
+            "admin": admin,
+            "clients": session.scalar(select(func.count()).select_from(Client)),
+        },
+    )
+
+
+@router.get("/registrations/{job_id}", response_class=HTMLResponse)
+def detail(request: Request, job_id: str, _: AdminClient, session: SessionDep) -> HTMLResponse:
+    """One registration: photo, overlay and the pose JSON."""
+    job = _job(session, job_id)
+    pose = json.dumps(job.result, indent=2) if job.result else None
+    return templates.TemplateResponse(request, "admin_detail.html", {"job": job, "pose": pose})
+
+
+def _image(key: str | None, media_type: str) -> Response:
+    if key is None:
+        raise Problem(404, "not-found", "no such image for this registration")
+    try:
+        return Response(get_storage().get(key), media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
+    except ObjectMissing:
+        raise Problem(404, "not-found", "the image is no longer stored") from None
+
+
+@router.get("/registrations/{job_id}/thumbnail.jpg")
+def thumbnail(job_id: str, _: AdminClient, session: SessionDep) -> Response:
+    return _image(_job(session, job_id).thumbnail_key, "image/jpeg")
+
+
+@router.get("/registrations/{job_id}/overlay.png")
+def overlay(job_id: str, _: AdminClient, session: SessionDep) -> Response:
+    return _image(_job(session, job_id).overlay_key, "image/png")
+
+
+@router.get("/registrations/{job_id}/photo")
+def photo(job_id: str, _: AdminClient, session: SessionDep) -> Response:
+    job = _job(session, job_id)
+    return _image(job.photo_key, job.photo_media_type)

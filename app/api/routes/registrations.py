@@ -1,0 +1,114 @@
+"""/v1/registrations: submit a photo, poll the job, fetch the overlay and the photo."""
+
+from __future__ import annotations
+
+import logging
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, Header, Response, UploadFile, status
+from fastapi.responses import JSONResponse
+
+from ...core.problems import Problem
+from ...core.storage import ObjectMissing, get_storage
+from worker.celery_app import TASK, get_celery
+
+from ...models import JobStatus, Registration
+from ...registrations import (
+    check_model,
+    check_photo,
+    create_job,
+    find_idempotent,
+    job_out,
+    links,
+    parse_hints,
+    request_hash,
+    visible_job,
+)
+from ...schemas import RegistrationAccepted, RegistrationOut
+from ..deps import CurrentClient, SessionDep, SettingsDep
+
+log = logging.getLogger(__name__)
+router = APIRouter(prefix="/v1/registrations", tags=["registrations"])
+
+_PROBLEM = {"content": {"application/problem+json": {}}}
+
+
+def _accepted(job_id: str, body: RegistrationAccepted) -> JSONResponse:
+    return JSONResponse(
+        body.model_dump(mode="json"), status_code=202, headers={"Location": f"/v1/registrations/{job_id}"}
+    )
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=RegistrationAccepted,
+    responses={code: _PROBLEM for code in (401, 409, 413, 415, 422, 503)},
+)
+def submit(
+    client: CurrentClient,
+    session: SessionDep,
+    settings: SettingsDep,
+    photo: Annotated[UploadFile, File(description="the vehicle photo (JPEG, PNG, WebP, TIFF or BMP)")],
+    model_id: Annotated[str, Form(description="id of a model from GET /v1/models")],
+    init_camera: Annotated[str | None, Form(description="start camera JSON {K, R, t, width, height}")] = None,
+    bbox: Annotated[str | None, Form(description="vehicle box X0,Y0,X1,Y1 in pixels")] = None,
+    options: Annotated[str | None, Form(description="engine options JSON, see RegistrationOptionsIn")] = None,
+    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+) -> JSONResponse:
+    """Queue a registration; answers 202 with the job's URL at once."""
+    check_model(model_id)
+    data = photo.file.read()
+    fingerprint = request_hash(data, model_id, init_camera, bbox, options)
+    if idempotency_key:
+        existing = find_idempotent(session, client, idempotency_key, fingerprint)
+        if existing is not None:
+            return _accepted(existing.id, RegistrationAccepted(id=existing.id, status=existing.status, links=links(existing)))
+    checked = check_photo(data, settings)
+    hints = parse_hints(init_camera, bbox, options, checked)
+    job, created = create_job(session, get_storage(), client, model_id, checked, hints, idempotency_key, fingerprint)
+    if created:
+        _enqueue(session, job.id)
+    return _accepted(job.id, RegistrationAccepted(id=job.id, status=job.status, links=links(job)))
+
+
+def _enqueue(session: SessionDep, job_id: str) -> None:
+    """Send the job to the queue; if the broker is down the job is marked failed, never left queued."""
+    try:
+        get_celery().send_task(TASK, args=[job_id], task_id=job_id)
+    except Exception as exc:  # kombu raises many connection error types
+        log.error("cannot queue job %s: %s", job_id, exc)
+        job = session.get(Registration, job_id)
+        if job is not None:
+            job.finish(JobStatus.failed, "broker-unavailable", "the job queue could not be reached at submission")
+            session.commit()
+        raise Problem(503, "broker-unavailable", "the job queue cannot be reached; try again") from None
+
+
+@router.get("/{job_id}", response_model=RegistrationOut, responses={404: _PROBLEM})
+def status_of(job_id: str, client: CurrentClient, session: SessionDep) -> RegistrationOut:
+    """The job's status, its progress while running, its result when done."""
+    return job_out(visible_job(session, client, job_id))
+
+
+def _stored(key: str | None, media_type: str, what: str) -> Response:
+    if key is None:
+        raise Problem(404, "not-found", f"this registration has no {what} yet")
+    try:
+        data = get_storage().get(key)
+    except ObjectMissing:
+        raise Problem(404, "not-found", f"the {what} is no longer stored") from None
+    return Response(data, media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
+
+
+@router.get("/{job_id}/overlay.png", response_class=Response, responses={200: {"content": {"image/png": {}}}, 404: _PROBLEM})
+def overlay(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
+    """The registered model's outline drawn on the photo (PNG), once the job succeeded."""
+    return _stored(visible_job(session, client, job_id).overlay_key, "image/png", "overlay")
+
+
+@router.get("/{job_id}/photo", response_class=Response, responses={200: {"content": {"image/*": {}}}, 404: _PROBLEM})
+def photo_of(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
+    """The photo as uploaded."""
+    job = visible_job(session, client, job_id)
+    return _stored(job.photo_key, job.photo_media_type, "photo")

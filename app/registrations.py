@@ -1,0 +1,192 @@
+"""Creating registration jobs and presenting them; the routes stay thin around these."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from PIL import Image
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from vehicle_pose import Camera, CameraError, PhotoError, decode_photo
+from vehicle_pose.initialize import parse_bbox
+
+from .core.config import Settings
+from .core.library import get_library
+from .core.problems import Problem
+from .core.storage import Storage
+from .models import Client, JobStatus, Registration, as_utc, new_id
+from .schemas import JobError, Links, Progress, RegistrationOptionsIn, RegistrationOut
+from .uploads import sniff_image
+
+
+@dataclass(frozen=True)
+class Photo:
+    data: bytes
+    media_type: str
+    width: int
+    height: int
+
+
+def check_photo(data: bytes, settings: Settings) -> Photo:
+    """The photo if the engine can use it: 415 for a non-image, 413 for a bomb, 422 if damaged."""
+    media_type = sniff_image(data[:16])
+    if media_type is None:
+        raise Problem(415, "unsupported-media-type", "the photo is not a JPEG, PNG, WebP, TIFF or BMP image")
+    too_large = f"at most {settings.max_photo_pixels} pixels are accepted"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as probe:
+                pixels = probe.width * probe.height
+    except Image.DecompressionBombError:
+        raise Problem(413, "photo-too-large", f"the photo declares too many pixels; {too_large}") from None
+    except (OSError, ValueError) as exc:
+        raise Problem(422, "unreadable-photo", f"the photo cannot be read: {exc}") from None
+    if pixels > settings.max_photo_pixels:
+        raise Problem(413, "photo-too-large", f"the photo has {pixels} pixels; {too_large}")
+    try:
+        rgb = decode_photo(data, max_pixels=settings.max_photo_pixels)
+    except PhotoError as exc:
+        raise Problem(422, "unreadable-photo", str(exc)) from None
+    return Photo(data, media_type, int(rgb.shape[1]), int(rgb.shape[0]))
+
+
+def parse_hints(
+    init_camera: str | None, bbox: str | None, options: str | None, photo: Photo
+) -> tuple[dict[str, Any] | None, list[float] | None, dict[str, Any]]:
+    """Validated hints as stored in the job: camera JSON, box, engine options; 422 when malformed."""
+    camera = None
+    if init_camera:
+        try:
+            camera = Camera.from_dict(json.loads(init_camera)).to_dict()
+        except json.JSONDecodeError as exc:
+            raise Problem(422, "invalid-camera", f"init_camera is not valid JSON: {exc.msg}") from None
+        except CameraError as exc:
+            raise Problem(422, "invalid-camera", str(exc)) from None
+    box = None
+    if bbox:
+        try:
+            box = list(parse_bbox(bbox, photo.width, photo.height))
+        except CameraError as exc:
+            raise Problem(422, "invalid-bbox", str(exc)) from None
+    opts: dict[str, Any] = {}
+    if options:
+        try:
+            opts = RegistrationOptionsIn.model_validate_json(options).engine_kwargs()
+        except ValueError as exc:
+            raise Problem(422, "invalid-options", str(exc).splitlines()[0] if str(exc) else "invalid options") from None
+    return camera, box, opts
+
+
+def check_model(model_id: str) -> None:
+    """422 before anything is stored or queued when the model id is unknown."""
+    if model_id not in get_library():
+        known = ", ".join(get_library().ids())
+        raise Problem(422, "unknown-model", f"unknown model {model_id!r} (known: {known})", model_id=model_id)
+
+
+def request_hash(photo: bytes, *fields: str | None) -> str:
+    """Fingerprint of a request, to tell a retry from a different request reusing a key."""
+    h = hashlib.sha256(photo)
+    for f in fields:
+        h.update(b"\x00" + (f or "").encode())
+    return h.hexdigest()
+
+
+def find_idempotent(session: Session, client: Client, key: str, fingerprint: str) -> Registration | None:
+    """The job created earlier with this Idempotency-Key; 409 if that request differed."""
+    job = session.scalars(
+        select(Registration).where(Registration.client_id == client.id, Registration.idempotency_key == key)
+    ).first()
+    if job is not None and job.request_hash != fingerprint:
+        raise Problem(409, "idempotency-key-reused", "this Idempotency-Key was used for a different request")
+    return job
+
+
+def create_job(
+    session: Session,
+    storage: Storage,
+    client: Client,
+    model_id: str,
+    photo: Photo,
+    hints: tuple[dict[str, Any] | None, list[float] | None, dict[str, Any]],
+    idempotency_key: str | None,
+    fingerprint: str,
+) -> tuple[Registration, bool]:
+    """Store the photo and the job record; returns (job, created). The caller queues it."""
+    job_id = new_id()
+    photo_key = f"photos/{job_id}"
+    storage.put(photo_key, photo.data, photo.media_type)
+    camera, box, opts = hints
+    job = Registration(
+        id=job_id,
+        client_id=client.id,
+        idempotency_key=idempotency_key,
+        request_hash=fingerprint,
+        model_id=model_id,
+        status=JobStatus.queued.value,
+        photo_key=photo_key,
+        photo_media_type=photo.media_type,
+        photo_width=photo.width,
+        photo_height=photo.height,
+        init_camera=camera,
+        bbox=box,
+        options=opts,
+    )
+    session.add(job)
+    try:
+        session.commit()
+    except IntegrityError:
+        # A concurrent retry with the same Idempotency-Key won the race: answer with its job.
+        session.rollback()
+        storage.delete(photo_key)
+        existing = find_idempotent(session, client, idempotency_key or "", fingerprint)
+        if existing is None:
+            raise
+        return existing, False
+    return job, True
+
+
+def visible_job(session: Session, client: Client, job_id: str) -> Registration:
+    """The job if this client may see it (its own, or any for an admin); 404 otherwise."""
+    job = session.get(Registration, job_id) if len(job_id) <= 64 else None
+    if job is None or (job.client_id != client.id and not client.is_admin):
+        raise Problem(404, "not-found", f"no registration {job_id!r}")
+    return job
+
+
+def links(job: Registration) -> Links:
+    base = f"/v1/registrations/{job.id}"
+    return Links(self=base, photo=f"{base}/photo", overlay=f"{base}/overlay.png" if job.overlay_key else None)
+
+
+def job_out(job: Registration) -> RegistrationOut:
+    progress = None
+    if job.status in (JobStatus.running.value, JobStatus.queued.value) and job.stage:
+        loss = job.current_loss if job.current_loss is not None and np.isfinite(job.current_loss) else None
+        progress = Progress(stage=job.stage, evaluations=job.evaluations, loss=loss)
+    error = None
+    if job.status == JobStatus.failed.value:
+        error = JobError(type=f"/problems/{job.error_type or 'internal-error'}", detail=job.error_detail or "")
+    return RegistrationOut(
+        id=job.id,
+        status=job.status,  # type: ignore[arg-type]
+        model_id=job.model_id,
+        created_at=as_utc(job.created_at),
+        started_at=as_utc(job.started_at) if job.started_at else None,
+        finished_at=as_utc(job.finished_at) if job.finished_at else None,
+        attempts=job.attempts,
+        photo={"media_type": job.photo_media_type, "width": job.photo_width, "height": job.photo_height},
+        progress=progress,
+        result=job.result if job.status == JobStatus.succeeded.value else None,
+        error=error,
+        links=links(job),
+    )
