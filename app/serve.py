@@ -125,9 +125,9 @@ def run(args: argparse.Namespace) -> int:
         keys = _bootstrap_keys(settings)
         procs.append(
             subprocess.Popen(
-                [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker", "--loglevel", args.log_level,
+                [sys.executable, "-m", "celery", "-A", "worker.celery_app", "--quiet", "worker", "--loglevel", args.log_level,
                  "--pool", "prefork", "--concurrency", str(args.workers), "-Q", "registrations",
-                 "--hostname", f"worker-{os.getpid()}@%h", "--without-mingle", "--without-gossip", "--quiet"],
+                 "--hostname", f"worker-{os.getpid()}@%h", "--without-mingle", "--without-gossip"],
                 env=env,
             )
         )

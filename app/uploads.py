@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from starlette.exceptions import HTTPException
 from starlette.requests import Request
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .core.problems import Problem, problem_response
+from .core.problems import problem_response
 
 # Magic numbers of the photo formats the engine decodes; the declared Content-Type is ignored.
 _SIGNATURES: tuple[tuple[bytes, int, str], ...] = (
@@ -62,7 +63,8 @@ class BodySizeLimit:
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > limit:
-                    raise Problem(413, "content-too-large", f"the request body exceeds {limit} bytes")
+                    # An HTTPException passes through FastAPI's body parsing unchanged (it wraps others as 400).
+                    raise HTTPException(413, f"the request body exceeds {limit} bytes")
             return message
 
         await self.app(scope, limited_receive, send)

@@ -65,3 +65,13 @@ def projection_error(model: VehicleModel, est: Camera, truth: Camera) -> float:
     """Mean distance (pixels) between the model's vertices projected by two cameras."""
     pts = model.mesh.sample_points(3000)
     return float(np.linalg.norm(est.project(pts) - truth.project(pts), axis=1).mean())
+
+
+@pytest.fixture(scope="session")
+def service(tmp_path_factory):
+    """The whole service, started once for the test session (real Redis, Celery, uvicorn)."""
+    from service_stack import start_stack
+
+    stack = start_stack(tmp_path_factory.mktemp("service"))
+    yield stack
+    stack.stop()

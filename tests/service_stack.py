@@ -1,0 +1,101 @@
+"""The real service for tests: ``vehicle-pose-service run`` with its embedded Redis, Celery
+worker processes and uvicorn, on a free port and a temporary data folder."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import numpy as np
+from PIL import Image
+
+SERVICE = Path(sys.executable).parent / "vehicle-pose-service"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Stack:
+    url: str
+    data_dir: Path
+    keys: dict[str, str]
+    proc: subprocess.Popen[bytes]
+    log: Path
+
+    def client(self, key: str | None = "default") -> httpx.Client:
+        headers = {"Authorization": f"Bearer {self.keys[key]}"} if key else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=30.0)
+
+    def log_tail(self, n: int = 60) -> str:
+        return "\n".join(self.log.read_text(errors="replace").splitlines()[-n:])
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=40)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def start_stack(data_dir: Path, *, workers: int = 2, extra_env: dict[str, str] | None = None) -> Stack:
+    port = free_port()
+    log = data_dir / "service.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("VP_")}
+    env.update(extra_env or {})
+    with log.open("wb") as out:
+        proc = subprocess.Popen(
+            [str(SERVICE), "run", "--port", str(port), "--workers", str(workers), "--data-dir", str(data_dir),
+             "--log-level", "INFO"],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+    stack = Stack(f"http://127.0.0.1:{port}", data_dir, {}, proc, log)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the service exited with {proc.returncode}:\n{stack.log_tail()}")
+        try:
+            if httpx.get(f"{stack.url}/readyz", timeout=5).status_code == 200:
+                stack.keys = json.loads((data_dir / "credentials.json").read_text())
+                return stack
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.5)
+    stack.stop()
+    raise RuntimeError(f"the service was not ready within 120 s:\n{stack.log_tail()}")
+
+
+def wait_for(client: httpx.Client, job_id: str, *, timeout: float = 120.0, until: tuple[str, ...] = ("succeeded", "failed")) -> dict:
+    """Poll a job until its status is one of ``until``; returns its last body."""
+    deadline = time.monotonic() + timeout
+    body: dict = {}
+    while time.monotonic() < deadline:
+        r = client.get(f"/v1/registrations/{job_id}")
+        assert r.status_code == 200, r.text
+        body = r.json()
+        if body["status"] in until:
+            return body
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id} still {body.get('status')} after {timeout} s: {body}")
+
+
+def encode(rgb: np.ndarray, fmt: str = "PNG", **params) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format=fmt, **params)
+    return buf.getvalue()
