@@ -1,0 +1,182 @@
+"""Service parts without the queue: settings, storage, sniffing, migrations, the job runner."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from conftest import view
+from pydantic import ValidationError
+from service_stack import encode
+from sqlalchemy import create_engine, inspect, select
+
+from app.core import config, db
+from app.core.config import Settings
+from app.core.migrate import alembic_config, upgrade
+from app.core.security import create_client
+from app.core.storage import LocalStorage, ObjectMissing
+from app.models import Client, JobStatus, Registration
+from app.uploads import sniff_image
+from vehicle_pose.synth import synthesize
+
+
+def test_settings_refuse_unsafe_combinations(tmp_path):
+    with pytest.raises(ValidationError, match="soft"):
+        Settings(data_dir=tmp_path, job_soft_time_limit_s=300, job_hard_time_limit_s=300)
+    with pytest.raises(ValidationError, match="visibility"):
+        Settings(data_dir=tmp_path, job_hard_time_limit_s=300, visibility_timeout_s=300)
+    with pytest.raises(ValidationError, match="SQLite"):
+        Settings(data_dir=tmp_path, environment="production")
+    with pytest.raises(ValidationError, match="24 characters"):
+        Settings(environment="production", database_url="postgresql+psycopg://u:p@db/vp", bootstrap_admin_key="short")
+    s = Settings(data_dir=tmp_path)
+    assert s.database_url == f"sqlite:///{tmp_path.resolve() / 'vehicle_pose.db'}"
+    assert s.upload_models_dir == tmp_path.resolve() / "models"
+
+
+def test_settings_read_prefixed_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("VP_MAX_ATTEMPTS", "5")
+    assert Settings().max_attempts == 5 and Settings().data_dir == tmp_path
+
+
+def test_local_storage_round_trip_and_refuses_escaping_keys(tmp_path):
+    store = LocalStorage(tmp_path)
+    store.put("photos/abc", b"data", "image/png")
+    assert store.get("photos/abc") == b"data"
+    store.delete("photos/abc")
+    with pytest.raises(ObjectMissing):
+        store.get("photos/abc")
+    for key in ("../x", "/etc/passwd", "a//b", "a/./b", ""):
+        with pytest.raises(ValueError):
+            store.put(key, b"", "x")
+    assert not list(tmp_path.rglob(".tmp-*"))
+
+
+@pytest.mark.parametrize(
+    "head,media_type",
+    [
+        (b"\xff\xd8\xff\xe0\x00\x10JFIF", "image/jpeg"),
+        (b"\x89PNG\r\n\x1a\n\x00\x00", "image/png"),
+        (b"RIFF\x00\x00\x00\x00WEBPVP8 ", "image/webp"),
+        (b"II*\x00\x08\x00\x00\x00", "image/tiff"),
+        (b"BM\x00\x00", "image/bmp"),
+        (b"RIFF\x00\x00\x00\x00WAVEfmt ", None),
+        (b"GIF89a", None),
+        (b"<html>", None),
+        (b"", None),
+    ],
+)
+def test_sniff_image_trusts_content_not_names(head, media_type):
+    assert sniff_image(head) == media_type
+
+
+def test_migrations_upgrade_and_downgrade(tmp_path):
+    from alembic import command
+
+    url = f"sqlite:///{tmp_path / 'm.db'}"
+    upgrade(url)
+    tables = set(inspect(create_engine(url)).get_table_names())
+    assert {"clients", "registrations", "alembic_version"} <= tables
+    command.downgrade(alembic_config(url), "base")
+    assert set(inspect(create_engine(url)).get_table_names()) == {"alembic_version"}
+
+
+@pytest.fixture
+def service_db(tmp_path, monkeypatch):
+    """Settings, database and storage of a service in ``tmp_path`` (no broker needed)."""
+    from app.core import library, storage
+
+    monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
+    caches = (config.get_settings, db.get_engine, db._session_factory, storage.get_storage, library.get_library)
+    for cache in caches:
+        cache.cache_clear()
+    upgrade()
+    with db.session_scope() as s:
+        create_client(s, "tester")
+        client_id = s.scalars(select(Client.id)).one()
+    yield client_id, storage.get_storage()
+    db.get_engine().dispose()
+    for cache in caches:
+        cache.cache_clear()
+
+
+def _job(client_id: str, store, photo: bytes, **fields) -> str:
+    with db.session_scope() as s:
+        job = Registration(client_id=client_id, model_id="sedan", photo_key="photos/p", photo_media_type="image/png",
+                           photo_width=320, photo_height=240, options={}, **fields)
+        s.add(job)
+        s.flush()
+        job_id = job.id
+    store.put("photos/p", photo, "image/png")
+    return job_id
+
+
+def _record(job_id: str) -> Registration:
+    with db.session_scope() as s:
+        job = s.get(Registration, job_id)
+        s.expunge(job)
+        return job
+
+
+@pytest.fixture(scope="module")
+def small_photo(sedan, renderer):
+    truth = view(sedan, 60.0, 15.0, width=320, height=240, focal=450.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer)
+    return encode(photo), truth
+
+
+def test_run_job_fails_a_job_whose_worker_kept_dying(service_db, small_photo):
+    from worker.jobs import run_job
+
+    client_id, store = service_db
+    job_id = _job(client_id, store, small_photo[0], attempts=3, status=JobStatus.running.value)
+    assert run_job(job_id) == "skipped"
+    job = _record(job_id)
+    assert job.status == "failed" and job.error_type == "worker-lost" and job.duration_s is not None
+
+
+def test_run_job_ignores_a_duplicate_delivery_of_a_finished_job(service_db, small_photo):
+    from worker.jobs import run_job
+
+    client_id, store = service_db
+    job_id = _job(client_id, store, small_photo[0], status=JobStatus.succeeded.value, attempts=1)
+    assert run_job(job_id) == "skipped"
+    assert _record(job_id).attempts == 1
+
+
+def test_run_job_reports_bad_input_found_late(service_db, small_photo):
+    from worker.jobs import run_job
+
+    client_id, store = service_db
+    truth = small_photo[1]
+    behind = truth.to_dict() | {"t": [0.0, 0.0, -8.0]}
+    job_id = _job(client_id, store, small_photo[0], init_camera=behind)
+    assert run_job(job_id) == "failed"
+    job = _record(job_id)
+    assert job.error_type == "invalid-pose", job.error_detail
+    assert job.attempts == 1
+
+    gone = _job(client_id, store, small_photo[0])
+    store.delete("photos/p")
+    assert run_job(gone) == "failed"
+    assert _record(gone).error_type == "photo-missing"
+
+
+def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, sedan):
+    from conftest import projection_error
+    from test_register import perturbed
+    from worker.jobs import run_job
+
+    from vehicle_pose.camera import Camera
+
+    client_id, store = service_db
+    truth = small_photo[1]
+    job_id = _job(client_id, store, small_photo[0], init_camera=perturbed(truth, 3, degrees=4.0).to_dict())
+    assert run_job(job_id) == "succeeded"
+    job = _record(job_id)
+    assert job.status == "succeeded" and job.stage == "done" and job.attempts == 1
+    assert projection_error(sedan, Camera.from_dict(job.result["camera"]), truth) < 1.0
+    assert store.get(job.overlay_key)[:8] == b"\x89PNG\r\n\x1a\n"
+    assert store.get(job.thumbnail_key)[:3] == b"\xff\xd8\xff"
+    json.dumps(job.result)
