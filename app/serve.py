@@ -61,8 +61,13 @@ def _start_redis(data_dir: Path) -> tuple[subprocess.Popen[bytes], str]:
     return proc, f"redis://127.0.0.1:{port}/0"
 
 
-def _bootstrap_keys(settings: Settings) -> dict[str, str]:
-    """The first admin and client keys, created once and kept in ``credentials.json`` (mode 0600)."""
+def _bootstrap_keys(settings: Settings, *, keep_file: bool) -> dict[str, str]:
+    """Create the first admin and client when there is no client yet; returns the keys it knows.
+
+    The keys are ``VP_BOOTSTRAP_ADMIN_KEY`` / ``VP_BOOTSTRAP_CLIENT_KEY`` when set, random
+    otherwise. With ``keep_file`` (the embedded set-up) they are kept in the data folder's
+    ``credentials.json`` (mode 0600) so each start can print them.
+    """
     from sqlalchemy import func, select
 
     from .core.db import session_scope
@@ -72,17 +77,18 @@ def _bootstrap_keys(settings: Settings) -> dict[str, str]:
     path = settings.data_dir / "credentials.json"
     with session_scope() as s:
         if (s.scalar(select(func.count()).select_from(Client)) or 0) > 0:
-            return json.loads(path.read_text()) if path.exists() else {}
+            return json.loads(path.read_text()) if keep_file and path.exists() else {}
         admin_key = settings.bootstrap_admin_key.get_secret_value() if settings.bootstrap_admin_key else None
         client_key = settings.bootstrap_client_key.get_secret_value() if settings.bootstrap_client_key else None
         keys = {
             "admin": create_client(s, "admin", admin=True, key=admin_key),
             "default": create_client(s, "default", key=client_key),
         }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        json.dump(keys, f, indent=2)
+    if keep_file:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            json.dump(keys, f, indent=2)
     return keys
 
 
@@ -122,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         get_settings.cache_clear()
         settings = get_settings()
         upgrade()
-        keys = _bootstrap_keys(settings)
+        keys = _bootstrap_keys(settings, keep_file=True)
         procs.append(
             subprocess.Popen(
                 [sys.executable, "-m", "celery", "-A", "worker.celery_app", "--quiet", "worker", "--loglevel", args.log_level,
@@ -169,9 +175,16 @@ def create_key(args: argparse.Namespace) -> int:
 
 
 def migrate(_: argparse.Namespace) -> int:
+    """Apply migrations; on a database with no client yet, create the bootstrap admin and client."""
+    from .core.config import get_settings
     from .core.migrate import upgrade
 
     upgrade()
+    settings = get_settings()
+    if settings.bootstrap_admin_key is not None:
+        created = _bootstrap_keys(settings, keep_file=False)
+        if created:
+            print("created the bootstrap admin and default clients")
     return 0
 
 
