@@ -291,3 +291,20 @@ def test_operations_endpoints(service):
         spec = c.get("/openapi.json").json()
         assert {"/v1/registrations", "/v1/registrations/{job_id}", "/v1/models"} <= set(spec["paths"])
         assert_problem(c.get("/no/such/route"), 404, "not-found")
+
+
+def test_a_job_past_its_time_limit_fails_as_timeout(tmp_path, scene):
+    from service_stack import start_stack
+
+    limits = {"VP_JOB_SOFT_TIME_LIMIT_S": "1", "VP_JOB_HARD_TIME_LIMIT_S": "20", "VP_VISIBILITY_TIMEOUT_S": "60"}
+    stack = start_stack(tmp_path, workers=1, extra_env=limits)
+    try:
+        with stack.client() as c:
+            options = json.dumps({"max_evaluations": 5000})
+            job_id = submit(c, encode(scene[0]), start=scene[2], options=options).json()["id"]
+            body = wait_for(c, job_id, timeout=60)
+            assert body["status"] == "failed", body
+            assert body["error"]["type"] == "/problems/timeout" and "1 s" in body["error"]["detail"]
+            assert c.get("/readyz").status_code == 200
+    finally:
+        stack.stop()

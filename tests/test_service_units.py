@@ -166,9 +166,9 @@ def test_run_job_reports_bad_input_found_late(service_db, small_photo):
 def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, sedan):
     from conftest import projection_error
     from test_register import perturbed
-    from worker.jobs import run_job
 
     from vehicle_pose.camera import Camera
+    from worker.jobs import run_job
 
     client_id, store = service_db
     truth = small_photo[1]

@@ -23,7 +23,14 @@ from app.core.db import session_scope
 from app.core.library import get_library
 from app.core.storage import ObjectMissing, Storage, get_storage
 from app.models import JobStatus, Registration, utcnow
-from vehicle_pose import Camera, ModelLibrary, RegistrationOptions, VehiclePoseError, decode_photo, register
+from vehicle_pose import (
+    Camera,
+    ModelLibrary,
+    RegistrationOptions,
+    VehiclePoseError,
+    decode_photo,
+    register,
+)
 from vehicle_pose.errors import RenderError
 from vehicle_pose.overlay import draw_overlay
 
@@ -51,10 +58,11 @@ def thumbnail(rgb: npt.NDArray[np.uint8], width: int = THUMBNAIL_WIDTH) -> bytes
     return _encode(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
-def _fail(job_id: str, error_type: str, detail: str) -> None:
+def fail_job(job_id: str, error_type: str, detail: str) -> None:
+    """Record that a job ended in failure (unless it already ended)."""
     with session_scope() as s:
         job = s.get(Registration, job_id)
-        if job is not None:
+        if job is not None and job.status not in (JobStatus.succeeded.value, JobStatus.failed.value):
             job.finish(JobStatus.failed, error_type, detail)
 
 
@@ -148,30 +156,33 @@ def run_job(
     """
     settings = settings or get_settings()
     storage = storage or get_storage()
-    job = _claim(job_id, settings)
+    try:
+        job = _claim(job_id, settings)
+    except OperationalError as exc:
+        raise Retry(f"database unavailable: {exc}") from exc
     if job is None:
         return "skipped"
     try:
         _register(job, storage, get_library(), settings)
         return JobStatus.succeeded.value
     except timeouts:
-        _fail(job_id, "timeout", f"the registration ran past {settings.job_soft_time_limit_s} s")
+        fail_job(job_id, "timeout", f"the registration ran past {settings.job_soft_time_limit_s} s")
     except ObjectMissing:
-        _fail(job_id, "photo-missing", "the job's photo is no longer in storage")
+        fail_job(job_id, "photo-missing", "the job's photo is no longer in storage")
     except RenderError as exc:
         if job.attempts < settings.max_attempts:
             raise Retry(str(exc)) from exc
-        _fail(job_id, exc.code, str(exc))
+        fail_job(job_id, exc.code, str(exc))
     except VehiclePoseError as exc:
-        _fail(job_id, exc.code, str(exc))
+        fail_job(job_id, exc.code, str(exc))
     except (OperationalError, OSError, ConnectionError) as exc:
         log.warning("job %s attempt %d: transient error: %s", job_id, job.attempts, exc)
         if job.attempts < settings.max_attempts:
             raise Retry(str(exc)) from exc
-        _fail(job_id, "internal-error", f"gave up after {job.attempts} attempts: {exc}")
+        fail_job(job_id, "internal-error", f"gave up after {job.attempts} attempts: {exc}")
     except Exception as exc:
         log.exception("job %s attempt %d failed", job_id, job.attempts)
-        _fail(job_id, "internal-error", f"{type(exc).__name__}: {exc}")
+        fail_job(job_id, "internal-error", f"{type(exc).__name__}: {exc}")
     return JobStatus.failed.value
 
 

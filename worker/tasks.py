@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import logging
+from typing import Any
+
 from celery import Task
-from celery.exceptions import SoftTimeLimitExceeded
+from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 from celery.signals import worker_process_init
 
 from app.core.db import get_engine
 
 from .celery_app import TASK, celery_app
-from .jobs import Retry, requeue, run_job
+from .jobs import Retry, fail_job, requeue, run_job
+
+log = logging.getLogger(__name__)
 
 RETRY_DELAY_S = 2
+MAX_RETRIES = 12
 
 
 @worker_process_init.connect
@@ -20,11 +26,35 @@ def _fresh_process(**_: object) -> None:
     get_engine.cache_clear()
 
 
-@celery_app.task(name=TASK, bind=True, max_retries=None)
+class RegistrationTask(Task):
+    """Records in the job how a run ended that never reached the job runner's own handling."""
+
+    def on_failure(self, exc: BaseException, task_id: str, args: Any, kwargs: Any, einfo: Any) -> None:
+        # Called in the worker's main process after a hard time limit killed the pool process,
+        # and in the pool process when retries ran out.
+        job_id = args[0] if args else kwargs.get("job_id")
+        if job_id is None:
+            return
+        if isinstance(exc, TimeLimitExceeded):
+            limit = self.time_limit or celery_app.conf.task_time_limit
+            reason = ("timeout", f"the registration was stopped at the hard time limit of {limit} s")
+        else:
+            reason = ("internal-error", f"gave up: {type(exc).__name__}: {exc}")
+        try:
+            fail_job(job_id, *reason)
+        except Exception:  # the database itself may be what failed
+            log.exception("cannot record the failure of job %s", job_id)
+
+
+@celery_app.task(name=TASK, bind=True, base=RegistrationTask, max_retries=MAX_RETRIES)
 def register_job(self: Task, job_id: str) -> str:
-    """Register the job's photo; the attempt count lives in the job record, not in Celery."""
+    """Register the job's photo; attempts that really ran are counted in the job record."""
     try:
         return run_job(job_id, timeouts=(SoftTimeLimitExceeded,))
     except Retry as exc:
-        requeue(job_id)
-        raise self.retry(countdown=RETRY_DELAY_S, exc=exc) from exc
+        try:
+            requeue(job_id)
+        except Exception:  # the database may be down: the retry still happens
+            log.warning("cannot mark job %s for retry", job_id)
+        delay = RETRY_DELAY_S * 2 ** min(self.request.retries, 4)
+        raise self.retry(countdown=delay, exc=exc) from exc

@@ -8,10 +8,10 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, Header, Response, UploadFile, status
 from fastapi.responses import JSONResponse
 
-from ...core.problems import Problem
-from ...core.storage import ObjectMissing, get_storage
 from worker.celery_app import TASK, get_celery
 
+from ...core.problems import Problem
+from ...core.storage import ObjectMissing, get_storage
 from ...models import JobStatus, Registration
 from ...registrations import (
     check_model,
