@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 from conftest import view
+from playwright.sync_api import sync_playwright
 from service_stack import encode, wait_for
 from test_register import perturbed
 
@@ -23,10 +24,9 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-
 
 @pytest.fixture(scope="module")
 def browser():
-    sync_api = pytest.importorskip("playwright.sync_api")
     if not Path(CHROMIUM).exists():
         pytest.fail("chromium is not installed; scripts/setup.sh installs Debian's chromium")
-    with sync_api.sync_playwright() as p:
+    with sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
         yield b
         b.close()

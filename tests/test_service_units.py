@@ -180,3 +180,36 @@ def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, se
     assert store.get(job.overlay_key)[:8] == b"\x89PNG\r\n\x1a\n"
     assert store.get(job.thumbnail_key)[:3] == b"\xff\xd8\xff"
     json.dumps(job.result)
+
+
+def test_s3_storage_against_an_s3_compatible_server(tmp_path):
+    """S3Storage over HTTP against moto's S3-compatible server (a real server process, not a mock client)."""
+    import boto3
+    from moto.server import ThreadedMotoServer
+    from service_stack import free_port
+
+    from app.core.storage import make_storage
+
+    port = free_port()
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    try:
+        endpoint = f"http://127.0.0.1:{port}"
+        creds = {"aws_access_key_id": "test", "aws_secret_access_key": "test-secret"}
+        boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", **creds).create_bucket(Bucket="vehicle-pose")
+        settings = Settings(data_dir=tmp_path, storage_url="s3://vehicle-pose/jobs", s3_endpoint_url=endpoint,
+                            s3_access_key=creds["aws_access_key_id"], s3_secret_key=creds["aws_secret_access_key"])
+        store = make_storage(settings)
+        store.ping()
+        store.put("photos/abc", b"\x89PNG data", "image/png")
+        assert store.get("photos/abc") == b"\x89PNG data"
+        raw = boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", **creds)
+        head = raw.head_object(Bucket="vehicle-pose", Key="jobs/photos/abc")
+        assert head["ContentType"] == "image/png"
+        store.delete("photos/abc")
+        with pytest.raises(ObjectMissing):
+            store.get("photos/abc")
+        with pytest.raises(ValueError):
+            store.put("../escape", b"", "x")
+    finally:
+        server.stop()

@@ -25,6 +25,7 @@ class Settings(BaseSettings):
     broker_url: str = "redis://127.0.0.1:6379/0"
     storage_url: str = ""
     s3_endpoint_url: str | None = None
+    s3_region: str = "us-east-1"
     s3_access_key: SecretStr | None = None
     s3_secret_key: SecretStr | None = None
     models_dir: Path | None = None

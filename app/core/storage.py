@@ -82,6 +82,7 @@ class S3Storage:
         self._client = boto3.client(
             "s3",
             endpoint_url=settings.s3_endpoint_url,
+            region_name=settings.s3_region,
             aws_access_key_id=settings.s3_access_key.get_secret_value() if settings.s3_access_key else None,
             aws_secret_access_key=settings.s3_secret_key.get_secret_value() if settings.s3_secret_key else None,
         )
