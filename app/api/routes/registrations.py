@@ -7,6 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Header, Response, UploadFile, status
 from fastapi.responses import JSONResponse
+from sqlalchemy.orm import Session
 
 from worker.celery_app import TASK, get_celery
 
@@ -72,7 +73,7 @@ def submit(
     return _accepted(job.id, RegistrationAccepted(id=job.id, status=job.status, links=links(job)))
 
 
-def _enqueue(session: SessionDep, job_id: str) -> None:
+def _enqueue(session: Session, job_id: str) -> None:
     """Send the job to the queue; if the broker is down the job is marked failed, never left queued."""
     try:
         get_celery().send_task(TASK, args=[job_id], task_id=job_id)
