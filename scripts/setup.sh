@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Create .venv/ at the repository root and install the engine, the service and the test tools.
 # Installs from Debian's packages what is missing (needs root or sudo): Mesa's EGL driver,
-# redis-server (the embedded broker of vehicle-pose-service) and chromium (the admin page test).
+# redis-server (the embedded broker of vehicle-pose-service), and for the tests chromium (the
+# admin page in a real browser) and postgresql (the database of the scaled-out set-up).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -9,6 +10,7 @@ need_apt=()
 ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so' || need_apt+=(libegl-mesa0 libegl1 libgl1-mesa-dri libgbm1)
 command -v redis-server >/dev/null || need_apt+=(redis-server)
 command -v chromium >/dev/null || need_apt+=(chromium)
+ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || need_apt+=(postgresql)
 if [ ${#need_apt[@]} -gt 0 ]; then
   sudo_cmd=""
   [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"

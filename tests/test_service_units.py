@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
 
 import pytest
 from conftest import view
 from pydantic import ValidationError
-from service_stack import encode
+from service_stack import encode, free_port
 from sqlalchemy import create_engine, inspect, select
 
 from app.core import config, db
@@ -186,7 +191,6 @@ def test_s3_storage_against_an_s3_compatible_server(tmp_path):
     """S3Storage over HTTP against moto's S3-compatible server (a real server process, not a mock client)."""
     import boto3
     from moto.server import ThreadedMotoServer
-    from service_stack import free_port
 
     from app.core.storage import make_storage
 
@@ -213,3 +217,70 @@ def test_s3_storage_against_an_s3_compatible_server(tmp_path):
             store.put("../escape", b"", "x")
     finally:
         server.stop()
+
+
+@pytest.fixture(scope="module")
+def postgres_url():
+    """A throw-away PostgreSQL server (Debian's binaries) on a free port, for the module."""
+    bins = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"))
+    if not bins:
+        pytest.fail("PostgreSQL is not installed; scripts/setup.sh installs Debian's postgresql")
+    bindir = bins[-1].parent
+    root = Path(tempfile.mkdtemp(prefix="vp-pg-"))
+    as_user: list[str] = []
+    if os.geteuid() == 0:  # PostgreSQL refuses to run as root
+        shutil.chown(root, "postgres")
+        as_user = ["runuser", "-u", "postgres", "--"]
+    port = free_port()
+    subprocess.run([*as_user, str(bindir / "initdb"), "-D", str(root / "db"), "-A", "trust", "-U", "vp"],
+                   check=True, capture_output=True)
+    subprocess.run([*as_user, str(bindir / "pg_ctl"), "-D", str(root / "db"), "-l", str(root / "log"), "-w", "start",
+                    "-o", f"-p {port} -k {root} -c listen_addresses=127.0.0.1"], check=True, capture_output=True)
+    try:
+        yield f"postgresql+psycopg://vp@127.0.0.1:{port}/postgres"
+    finally:
+        subprocess.run([*as_user, str(bindir / "pg_ctl"), "-D", str(root / "db"), "-m", "fast", "stop"],
+                       check=False, capture_output=True)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def test_postgresql_migrations_jobs_and_metrics(postgres_url, monkeypatch, tmp_path):
+    from alembic import command
+
+    from app.core import library, metrics, storage
+
+    monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("VP_DATABASE_URL", postgres_url)
+    caches = (config.get_settings, db.get_engine, db._session_factory, storage.get_storage, library.get_library)
+    for cache in caches:
+        cache.cache_clear()
+    try:
+        upgrade()
+        assert {"clients", "registrations"} <= set(inspect(db.get_engine()).get_table_names())
+        with db.session_scope() as s:
+            create_client(s, "pg-client")
+            client_id = s.scalars(select(Client.id)).one()
+            job = Registration(client_id=client_id, model_id="sedan", photo_key="photos/p", photo_media_type="image/png",
+                               photo_width=640, photo_height=480, options={"loss": "invariant"},
+                               init_camera={"K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, bbox=[1.0, 2.0, 3.0, 4.0])
+            s.add(job)
+            s.flush()
+            job.finish(JobStatus.failed, "invalid-pose", "off-screen")
+        families = {f.name: f for f in metrics.JobCollector().collect()}
+        assert {s.labels["status"]: s.value for s in families["vehicle_pose_jobs"].samples}["failed"] == 1
+        count = [s for s in families["vehicle_pose_job_duration_seconds"].samples
+                 if s.name.endswith("_count") and s.labels["status"] == "failed"]
+        assert count[0].value == 1
+        with db.session_scope() as s:
+            stored = s.scalars(select(Registration)).one()
+            assert stored.options == {"loss": "invariant"} and stored.bbox == [1.0, 2.0, 3.0, 4.0]
+            assert stored.created_at.tzinfo is not None and stored.duration_s >= 0
+        db.get_engine().dispose()
+        command.downgrade(alembic_config(postgres_url), "base")
+        engine = create_engine(postgres_url)
+        assert "registrations" not in inspect(engine).get_table_names()
+        engine.dispose()
+    finally:
+        db.get_engine().dispose()
+        for cache in caches:
+            cache.cache_clear()
