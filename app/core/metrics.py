@@ -22,13 +22,14 @@ from sqlalchemy import case, func, select
 from starlette.requests import Request
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from worker.celery_app import QUEUE
+
 from ..models import JobStatus, Registration
 from .config import get_settings
 from .db import session_scope
 
 log = logging.getLogger(__name__)
 
-QUEUE = "registrations"
 DURATION_BUCKETS = (1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0)
 
 registry = CollectorRegistry()
