@@ -3,19 +3,22 @@
 from __future__ import annotations
 
 import hashlib
-import io
 import json
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from PIL import Image
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from vehicle_pose import Camera, CameraError, PhotoError, decode_photo
+from vehicle_pose import (
+    Camera,
+    CameraError,
+    PhotoError,
+    PhotoTooLargeError,
+    decode_photo,
+)
 from vehicle_pose.initialize import parse_bbox
 
 from .core.config import Settings
@@ -40,22 +43,12 @@ def check_photo(data: bytes, settings: Settings) -> Photo:
     media_type = sniff_image(data[:16])
     if media_type is None:
         raise Problem(415, "unsupported-media-type", "the photo is not a JPEG, PNG, WebP, TIFF or BMP image")
-    too_large = f"at most {settings.max_photo_pixels} pixels are accepted"
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            with Image.open(io.BytesIO(data)) as probe:
-                pixels = probe.width * probe.height
-    except Image.DecompressionBombError:
-        raise Problem(413, "photo-too-large", f"the photo declares too many pixels; {too_large}") from None
-    except (OSError, ValueError) as exc:
-        raise Problem(422, "unreadable-photo", f"the photo cannot be read: {exc}") from None
-    if pixels > settings.max_photo_pixels:
-        raise Problem(413, "photo-too-large", f"the photo has {pixels} pixels; {too_large}")
     try:
         rgb = decode_photo(data, max_pixels=settings.max_photo_pixels)
+    except PhotoTooLargeError as exc:
+        raise Problem(413, exc.code, str(exc)) from None
     except PhotoError as exc:
-        raise Problem(422, "unreadable-photo", str(exc)) from None
+        raise Problem(422, exc.code, str(exc)) from None
     return Photo(data, media_type, int(rgb.shape[1]), int(rgb.shape[0]))
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from vehicle_pose.errors import PhotoError
+from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 from vehicle_pose.photo import decode_photo
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,7 +47,7 @@ def test_bad_bytes_are_photo_errors(data):
 
 
 def test_decompression_bomb_is_refused():
-    with pytest.raises(PhotoError):
+    with pytest.raises(PhotoTooLargeError):
         decode_photo(_encode(Image.new("L", (5000, 5000)), "PNG"), max_pixels=1_000_000)
 
 

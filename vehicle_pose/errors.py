@@ -15,6 +15,12 @@ class PhotoError(VehiclePoseError):
     code = "unreadable-photo"
 
 
+class PhotoTooLargeError(PhotoError):
+    """The photo has more pixels than allowed (a decompression bomb, or simply too large)."""
+
+    code = "photo-too-large"
+
+
 class ModelError(VehiclePoseError):
     """The vehicle model cannot be found, loaded or used."""
 

@@ -10,7 +10,7 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from .errors import PhotoError
+from .errors import PhotoError, PhotoTooLargeError
 
 __all__ = ["load_photo", "decode_photo", "is_gray", "MAX_PIXELS"]
 
@@ -22,18 +22,21 @@ def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np
 
     EXIF orientation is applied; CMYK, 16-bit, palette, gray and alpha images are converted
     (alpha is composited over mid-gray). Raises PhotoError for anything that is not a complete
-    image, or one with more than ``max_pixels`` pixels.
+    image, and PhotoTooLargeError (a PhotoError) for one with more than ``max_pixels`` pixels;
+    the size is checked from the header, before anything is decoded.
     """
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             img = Image.open(io.BytesIO(data))
             if img.width * img.height > max_pixels:
-                raise PhotoError(f"photo has {img.width}x{img.height} pixels, more than {max_pixels}")
+                raise PhotoTooLargeError(f"photo has {img.width}x{img.height} pixels, more than {max_pixels}")
             img.load()
     except PhotoError:
         raise
-    except (UnidentifiedImageError, Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+        raise PhotoTooLargeError(f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
+    except UnidentifiedImageError as exc:
         raise PhotoError(f"not a readable image: {exc}") from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise PhotoError(f"image data is damaged or truncated: {exc}") from None
