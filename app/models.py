@@ -99,6 +99,11 @@ class Registration(Base):
     error_type: Mapped[str | None] = mapped_column(String(50), default=None)
     error_detail: Mapped[str | None] = mapped_column(Text, default=None)
 
+    @property
+    def ended(self) -> bool:
+        """The job succeeded or failed; it will not run again."""
+        return self.status in (JobStatus.succeeded.value, JobStatus.failed.value)
+
     def finish(self, status: JobStatus, error_type: str | None = None, detail: str | None = None) -> None:
         """End the job: its final status, the time to result, and the reason when it failed."""
         self.status = status.value

@@ -11,6 +11,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
+from starlette.responses import Response
 
 from vehicle_pose import (
     Camera,
@@ -24,7 +25,7 @@ from vehicle_pose.initialize import parse_bbox
 from .core.config import Settings
 from .core.library import get_library
 from .core.problems import Problem
-from .core.storage import Storage
+from .core.storage import ObjectMissing, Storage, get_storage
 from .models import Client, JobStatus, Registration, as_utc, new_id
 from .schemas import JobError, Links, Progress, RegistrationOptionsIn, RegistrationOut
 from .uploads import sniff_image
@@ -154,6 +155,17 @@ def visible_job(session: Session, client: Client, job_id: str) -> Registration:
     if job is None or (job.client_id != client.id and not client.is_admin):
         raise Problem(404, "not-found", f"no registration {job_id!r}")
     return job
+
+
+def stored_response(key: str | None, media_type: str, what: str) -> Response:
+    """The stored object under ``key`` as a response; 404 when there is none (yet, or any more)."""
+    if key is None:
+        raise Problem(404, "not-found", f"this registration has no {what} yet")
+    try:
+        data = get_storage().get(key)
+    except ObjectMissing:
+        raise Problem(404, "not-found", f"the {what} is no longer stored") from None
+    return Response(data, media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
 
 
 def links(job: Registration) -> Links:

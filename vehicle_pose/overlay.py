@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -13,7 +14,7 @@ from .mesh import Mesh
 from .metadata import WheelGeometry
 from .render import Renderer, headlight
 
-__all__ = ["draw_overlay", "save_png"]
+__all__ = ["draw_overlay", "encode_image", "save_png"]
 
 _OUTLINE = (255, 220, 0)
 _PARTS = (0, 200, 255)
@@ -65,9 +66,16 @@ def draw_overlay(
     return out
 
 
+def encode_image(rgb: npt.NDArray[np.uint8], ext: str = ".png", params: Sequence[int] = ()) -> bytes:
+    """An (H, W, 3) uint8 RGB array encoded in the format of ``ext`` (``".png"``, ``".jpg"``)."""
+    ok, buf = cv2.imencode(ext, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), list(params))
+    if not ok:
+        raise ValueError(f"cannot encode an image as {ext}")
+    return buf.tobytes()
+
+
 def save_png(path: str | Path, rgb: npt.NDArray[np.uint8]) -> None:
     """Write an RGB array as PNG (creating the folder)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(p), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"cannot write {p}")
+    p.write_bytes(encode_image(rgb, ".png"))

@@ -32,7 +32,7 @@ from vehicle_pose import (
     register,
 )
 from vehicle_pose.errors import RenderError
-from vehicle_pose.overlay import draw_overlay
+from vehicle_pose.overlay import draw_overlay, encode_image
 
 log = logging.getLogger(__name__)
 
@@ -43,26 +43,19 @@ class Retry(Exception):
     """The job met a transient failure and should run again (a bounded number of times)."""
 
 
-def _encode(rgb: npt.NDArray[np.uint8], ext: str, params: list[int] | None = None) -> bytes:
-    ok, buf = cv2.imencode(ext, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params or [])
-    if not ok:
-        raise RuntimeError(f"cannot encode {ext}")
-    return buf.tobytes()
-
-
 def thumbnail(rgb: npt.NDArray[np.uint8], width: int = THUMBNAIL_WIDTH) -> bytes:
     """A JPEG of ``rgb`` at most ``width`` pixels wide."""
     h, w = rgb.shape[:2]
     if w > width:
         rgb = cv2.resize(rgb, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
-    return _encode(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return encode_image(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
 def fail_job(job_id: str, error_type: str, detail: str) -> None:
     """Record that a job ended in failure (unless it already ended)."""
     with session_scope() as s:
         job = s.get(Registration, job_id)
-        if job is not None and job.status not in (JobStatus.succeeded.value, JobStatus.failed.value):
+        if job is not None and not job.ended:
             job.finish(JobStatus.failed, error_type, detail)
 
 
@@ -73,7 +66,7 @@ def _claim(job_id: str, settings: Settings) -> Registration | None:
         if job is None:
             log.warning("job %s has no record; dropped", job_id)
             return None
-        if job.status in (JobStatus.succeeded.value, JobStatus.failed.value):
+        if job.ended:
             log.info("job %s is already %s; duplicate delivery ignored", job_id, job.status)
             return None
         if job.attempts >= settings.max_attempts:
@@ -123,7 +116,7 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     result = register(photo, model, init_camera=init, bbox=job.bbox, options=options, progress=progress)
     overlay = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels)
     overlay_key, thumb_key = f"overlays/{job.id}.png", f"thumbnails/{job.id}.jpg"
-    storage.put(overlay_key, _encode(overlay, ".png"), "image/png")
+    storage.put(overlay_key, encode_image(overlay, ".png"), "image/png")
     storage.put(thumb_key, thumbnail(overlay), "image/jpeg")
     with session_scope() as s:
         record = s.get(Registration, job.id)

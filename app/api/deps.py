@@ -36,10 +36,14 @@ def _presented_key(request: Request) -> str | None:
     return None
 
 
+def _authenticated(request: Request, session: Session) -> Client | None:
+    key = _presented_key(request)
+    return client_for_key(session, key) if key else None
+
+
 def current_client(request: Request, session: SessionDep) -> Client:
     """The client whose key came with the request; 401 otherwise."""
-    key = _presented_key(request)
-    client = client_for_key(session, key) if key else None
+    client = _authenticated(request, session)
     if client is None:
         raise Problem(
             401,
@@ -52,8 +56,7 @@ def current_client(request: Request, session: SessionDep) -> Client:
 
 def admin_client(request: Request, session: SessionDep) -> Client:
     """An admin client (API key or Basic auth from a browser); 401 without a key, 403 for a client key."""
-    key = _presented_key(request)
-    client = client_for_key(session, key) if key else None
+    client = _authenticated(request, session)
     if client is None:
         raise Problem(401, "unauthorized", "admin credentials required", headers=_BASIC_CHALLENGE)
     if not client.is_admin:

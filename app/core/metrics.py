@@ -19,7 +19,6 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 from sqlalchemy import case, func, select
-from starlette.requests import Request
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from worker.celery_app import QUEUE
@@ -68,7 +67,7 @@ class RequestMetrics:
         finally:
             route = scope.get("route")
             template = getattr(route, "path", None) or "unmatched"
-            method = Request(scope).method
+            method = scope["method"]
             REQUESTS.labels(method, template, str(code[0])).inc()
             LATENCY.labels(method, template).observe(time.perf_counter() - start)
 

@@ -14,20 +14,13 @@ from sqlalchemy import func, select
 
 from ...core.library import get_library
 from ...core.problems import Problem
-from ...core.storage import ObjectMissing, get_storage
 from ...models import Client, JobStatus, Registration
+from ...registrations import stored_response, visible_job
 from ..deps import AdminClient, SessionDep
 
 router = APIRouter(prefix="/admin", tags=["admin"], include_in_schema=False)
 templates = Jinja2Templates(directory=Path(__file__).resolve().parents[2] / "templates")
 PER_PAGE = 20
-
-
-def _job(session: SessionDep, job_id: str) -> Registration:
-    job = session.get(Registration, job_id) if len(job_id) <= 64 else None
-    if job is None:
-        raise Problem(404, "not-found", f"no registration {job_id!r}")
-    return job
 
 
 @router.get("", response_class=HTMLResponse)
@@ -74,33 +67,24 @@ def recent(
 
 
 @router.get("/registrations/{job_id}", response_class=HTMLResponse)
-def detail(request: Request, job_id: str, _: AdminClient, session: SessionDep) -> HTMLResponse:
+def detail(request: Request, job_id: str, admin: AdminClient, session: SessionDep) -> HTMLResponse:
     """One registration: photo, overlay and the pose JSON."""
-    job = _job(session, job_id)
+    job = visible_job(session, admin, job_id)
     pose = json.dumps(job.result, indent=2) if job.result else None
     return templates.TemplateResponse(request, "admin_detail.html", {"job": job, "pose": pose})
 
 
-def _image(key: str | None, media_type: str) -> Response:
-    if key is None:
-        raise Problem(404, "not-found", "no such image for this registration")
-    try:
-        return Response(get_storage().get(key), media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
-    except ObjectMissing:
-        raise Problem(404, "not-found", "the image is no longer stored") from None
-
-
 @router.get("/registrations/{job_id}/thumbnail.jpg")
-def thumbnail(job_id: str, _: AdminClient, session: SessionDep) -> Response:
-    return _image(_job(session, job_id).thumbnail_key, "image/jpeg")
+def thumbnail(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
+    return stored_response(visible_job(session, admin, job_id).thumbnail_key, "image/jpeg", "thumbnail")
 
 
 @router.get("/registrations/{job_id}/overlay.png")
-def overlay(job_id: str, _: AdminClient, session: SessionDep) -> Response:
-    return _image(_job(session, job_id).overlay_key, "image/png")
+def overlay(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
+    return stored_response(visible_job(session, admin, job_id).overlay_key, "image/png", "overlay")
 
 
 @router.get("/registrations/{job_id}/photo")
-def photo(job_id: str, _: AdminClient, session: SessionDep) -> Response:
-    job = _job(session, job_id)
-    return _image(job.photo_key, job.photo_media_type)
+def photo(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
+    job = visible_job(session, admin, job_id)
+    return stored_response(job.photo_key, job.photo_media_type, "photo")

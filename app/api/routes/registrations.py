@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 from worker.celery_app import TASK, get_celery
 
 from ...core.problems import Problem
-from ...core.storage import ObjectMissing, get_storage
+from ...core.storage import get_storage
 from ...models import JobStatus, Registration
 from ...registrations import (
     check_model,
@@ -23,6 +23,7 @@ from ...registrations import (
     links,
     parse_hints,
     request_hash,
+    stored_response,
     visible_job,
 )
 from ...schemas import RegistrationAccepted, RegistrationOut
@@ -34,10 +35,9 @@ router = APIRouter(prefix="/v1/registrations", tags=["registrations"])
 _PROBLEM = {"content": {"application/problem+json": {}}}
 
 
-def _accepted(job_id: str, body: RegistrationAccepted) -> JSONResponse:
-    return JSONResponse(
-        body.model_dump(mode="json"), status_code=202, headers={"Location": f"/v1/registrations/{job_id}"}
-    )
+def _accepted(job: Registration) -> JSONResponse:
+    body = RegistrationAccepted(id=job.id, status=job.status, links=links(job))
+    return JSONResponse(body.model_dump(mode="json"), status_code=202, headers={"Location": body.links.self})
 
 
 @router.post(
@@ -64,13 +64,13 @@ def submit(
     if idempotency_key:
         existing = find_idempotent(session, client, idempotency_key, fingerprint)
         if existing is not None:
-            return _accepted(existing.id, RegistrationAccepted(id=existing.id, status=existing.status, links=links(existing)))
+            return _accepted(existing)
     checked = check_photo(data, settings)
     hints = parse_hints(init_camera, bbox, options, checked)
     job, created = create_job(session, get_storage(), client, model_id, checked, hints, idempotency_key, fingerprint)
     if created:
         _enqueue(session, job.id)
-    return _accepted(job.id, RegistrationAccepted(id=job.id, status=job.status, links=links(job)))
+    return _accepted(job)
 
 
 def _enqueue(session: Session, job_id: str) -> None:
@@ -92,24 +92,14 @@ def status_of(job_id: str, client: CurrentClient, session: SessionDep) -> Regist
     return job_out(visible_job(session, client, job_id))
 
 
-def _stored(key: str | None, media_type: str, what: str) -> Response:
-    if key is None:
-        raise Problem(404, "not-found", f"this registration has no {what} yet")
-    try:
-        data = get_storage().get(key)
-    except ObjectMissing:
-        raise Problem(404, "not-found", f"the {what} is no longer stored") from None
-    return Response(data, media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
-
-
 @router.get("/{job_id}/overlay.png", response_class=Response, responses={200: {"content": {"image/png": {}}}, 404: _PROBLEM})
 def overlay(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
     """The registered model's outline drawn on the photo (PNG), once the job succeeded."""
-    return _stored(visible_job(session, client, job_id).overlay_key, "image/png", "overlay")
+    return stored_response(visible_job(session, client, job_id).overlay_key, "image/png", "overlay")
 
 
 @router.get("/{job_id}/photo", response_class=Response, responses={200: {"content": {"image/*": {}}}, 404: _PROBLEM})
 def photo_of(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
     """The photo as uploaded."""
     job = visible_job(session, client, job_id)
-    return _stored(job.photo_key, job.photo_media_type, "photo")
+    return stored_response(job.photo_key, job.photo_media_type, "photo")
