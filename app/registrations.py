@@ -20,6 +20,7 @@ from vehicle_pose import (
     PhotoTooLargeError,
     decode_photo,
 )
+from vehicle_pose.errors import UnknownModelError
 from vehicle_pose.initialize import parse_bbox
 
 from .core.config import Settings
@@ -80,11 +81,15 @@ def parse_hints(
     return camera, box, opts
 
 
-def check_model(model_id: str) -> None:
-    """422 before anything is stored or queued when the model id is unknown."""
-    if model_id not in get_library():
-        known = ", ".join(get_library().ids())
-        raise Problem(422, "unknown-model", f"unknown model {model_id!r} (known: {known})", model_id=model_id)
+def check_model(model_id: str) -> list[str]:
+    """The model ids named by ``model_id`` (one id, ``a,b,c`` or ``auto``); 422 before anything
+    is stored or queued when one is unknown or the field is too long to keep."""
+    if len(model_id) > 64:
+        raise Problem(422, "unknown-model", "model_id must be at most 64 characters", model_id=model_id[:64])
+    try:
+        return get_library().resolve(model_id)
+    except UnknownModelError as exc:
+        raise Problem(422, "unknown-model", str(exc), model_id=model_id) from None
 
 
 def request_hash(photo: bytes, *fields: str | None) -> str:
@@ -191,7 +196,7 @@ def job_out(job: Registration) -> RegistrationOut:
         attempts=job.attempts,
         photo={"media_type": job.photo_media_type, "width": job.photo_width, "height": job.photo_height},
         progress=progress,
-        result=job.result if job.status == JobStatus.succeeded.value else None,
+        result=job.result if job.status in (JobStatus.succeeded.value, JobStatus.failed.value) else None,
         error=error,
         links=links(job),
     )

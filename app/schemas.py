@@ -28,6 +28,8 @@ class RegistrationOptionsIn(BaseModel):
     resegment: bool | None = None
     coarse_to_fine: bool | None = None
     max_evaluations: int | None = Field(default=None, ge=20, le=5000)
+    starts: int | None = Field(default=None, ge=1, le=12, description="without init_camera: start poses screened")
+    refine: int | None = Field(default=None, ge=1, le=4, description="without init_camera: poses refined at full size")
 
     def engine_kwargs(self) -> dict[str, Any]:
         """The options that were set, checked against the engine's names."""

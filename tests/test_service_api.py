@@ -211,8 +211,42 @@ def test_bad_hints_and_unknown_model_are_refused_before_queueing(service, scene)
         assert_problem(submit(c, png, bbox="1,2,3"), 422, "invalid-bbox")
         assert_problem(submit(c, png, options='{"loss": "nope"}'), 422, "invalid-options")
         assert_problem(submit(c, png, options='{"max_evaluations": 1}'), 422, "invalid-options")
+        assert_problem(submit(c, png, options='{"starts": 0}'), 422, "invalid-options")
+        body = assert_problem(submit(c, png, model_id="sedan,no-such-car"), 422, "unknown-model")
+        assert "no-such-car" in body["detail"]
+        assert_problem(submit(c, png, model_id="x" * 65), 422, "unknown-model")
         assert_problem(c.post("/v1/registrations", data={"model_id": "sedan"}), 422, "validation-error")
         assert _queued_total(c.get("/metrics").text) == _queued_total(before)
+
+
+def test_no_hint_identification(service, renderer):
+    """No start camera, no box, two candidate models: the worker finds the van and its pose."""
+    from vehicle_pose.library import ModelLibrary
+
+    van = ModelLibrary().load("van")
+    truth = view(van, 60.0, 10.0, focal=500.0, distance=11.0, width=320, height=240)
+    photo, _ = synthesize(van.mesh, truth, renderer=renderer, seed=10)
+    with service.client() as c:
+        r = submit(c, encode(photo), model_id="sedan,van", options='{"starts": 3, "refine": 1}')
+        assert r.status_code == 202, r.text
+        body = wait_for(c, r.json()["id"], timeout=240.0)
+        assert body["status"] == "succeeded", body
+        result = body["result"]
+        assert result["model"]["id"] == "van" and [m["model"] for m in result["identification"]] == ["van", "sedan"]
+        assert result["start"]["source"] == "none" and result["failed"] is False and result["confidence"] >= 0.5
+        assert projection_error(van, Camera.from_dict(result["camera"]), truth) < 2.0
+        assert c.get(body["links"]["overlay"]).status_code == 200
+
+
+def test_a_photo_without_a_vehicle_fails_as_no_credible_pose(service):
+    rng = np.random.default_rng(4)
+    photo = (rng.random((60, 80, 3)) * 255).astype(np.uint8).repeat(4, 0).repeat(4, 1)
+    with service.client() as c:
+        r = submit(c, encode(photo), options='{"starts": 2, "refine": 1, "max_evaluations": 100}')
+        body = wait_for(c, r.json()["id"], timeout=240.0)
+        assert body["status"] == "failed" and body["error"]["type"] == "/problems/no-credible-pose", body
+        assert body["result"]["failed"] is True and body["result"]["confidence"] < 0.5
+        assert c.get(body["links"]["overlay"]).status_code == 200
 
 
 def _queued_total(metrics: str) -> float:

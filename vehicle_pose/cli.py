@@ -2,7 +2,8 @@
 
 Exit codes: 0 success; 2 bad input (unreadable photo, unknown model, mesh with no faces,
 invalid camera or box, off-screen start pose, bad arguments) with a one-line reason on stderr;
-3 when no OpenGL context can be created on this machine.
+3 when no OpenGL context can be created on this machine; 4 when the pose was searched without
+a start camera and no candidate was credible (the result is written, with ``"failed": true``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from pathlib import Path
 
 from . import __version__
 from .camera import Camera
-from .errors import RenderError, VehiclePoseError
+from .errors import PoseError, RenderError, VehiclePoseError
+from .identify import identify
 from .library import ModelLibrary, VehicleModel, model_from_mesh
 from .losses import LOSSES
 from .metadata import UNITS
@@ -39,7 +41,9 @@ def _parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("register", help="find the model's pose in a photo")
     r.add_argument("photo", help="photo file (JPEG, PNG, ...)")
-    r.add_argument("--model", required=True, help="model id from the library, or a mesh file path")
+    r.add_argument("--model", required=True,
+                   help="model id from the library, a mesh file path, a,b,c (identify among these ids) "
+                        "or auto (identify among every library model)")
     r.add_argument("--out", required=True, help="where to write result.json")
     r.add_argument("--overlay", help="where to write the overlay PNG")
     r.add_argument("--init-camera", help="start camera JSON {K, R, t, width, height}")
@@ -58,6 +62,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--no-grabcut", action="store_true", help="keep the photo's background")
     r.add_argument("--single-level", action="store_true", help="no coarse-to-fine pyramid")
     r.add_argument("--max-evaluations", type=int, default=RegistrationOptions.max_evaluations, help="per level")
+    r.add_argument("--starts", type=int, default=RegistrationOptions.starts,
+                   help="without --init-camera: distinct start poses screened")
+    r.add_argument("--refine", type=int, default=RegistrationOptions.refine,
+                   help="without --init-camera: screened poses refined at full size")
     r.add_argument("--shade", type=float, default=0.0, help="blend the shaded model into the overlay (0..1)")
 
     m = sub.add_parser("models", help="list the model library")
@@ -65,16 +73,18 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _load_model(args: argparse.Namespace) -> VehicleModel:
+def _load_models(args: argparse.Namespace) -> list[VehicleModel]:
     path = Path(args.model)
     if path.suffix and (path.is_file() or "/" in args.model or "\\" in args.model):
-        return model_from_mesh(path, up=args.up, forward=args.forward, units=args.units, meters_per_unit=UNITS[args.units])
-    return ModelLibrary(args.models_dir).load(args.model)
+        return [model_from_mesh(path, up=args.up, forward=args.forward, units=args.units,
+                                meters_per_unit=UNITS[args.units])]
+    lib = ModelLibrary(args.models_dir)
+    return [lib.load(model_id) for model_id in lib.resolve(args.model)]
 
 
 def _register(args: argparse.Namespace) -> int:
     photo = load_photo(args.photo)
-    model = _load_model(args)
+    models = _load_models(args)
     init = Camera.load(args.init_camera) if args.init_camera else None
     options = RegistrationOptions(
         loss=args.loss,
@@ -86,18 +96,34 @@ def _register(args: argparse.Namespace) -> int:
         side=args.side,
         parametrization=args.parametrization,
         resegment=not args.no_resegment,
+        starts=args.starts,
+        refine=args.refine,
     )
-    result = register(photo, model, init_camera=init, bbox=args.bbox, options=options)
+    if len(models) == 1:
+        result = register(photo, models[0], init_camera=init, bbox=args.bbox, options=options)
+        data = result.to_dict()
+    else:
+        ranking = identify(photo, models, init_camera=init, bbox=args.bbox, options=options)
+        if ranking[0].result is None:
+            raise PoseError(f"no candidate model could be registered: {ranking[0].error}")
+        result = ranking[0].result
+        data = result.to_dict() | {"identification": [c.to_dict() for c in ranking]}
+    model = result.model
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+    out.write_text(json.dumps(data, indent=2) + "\n")
     if args.overlay:
         image = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels, shade=args.shade)
         save_png(args.overlay, image)
+    conf = "" if result.confidence is None else f", confidence {result.confidence:.2f}"
     print(
-        f"registered {model.info.id}: loss {result.loss:.4f}, {result.evaluations} evaluations, "
+        f"registered {model.info.id}: loss {result.loss:.4f}{conf}, {result.evaluations} evaluations, "
         f"{result.seconds:.2f} s -> {out}"
     )
+    if result.failed:
+        print(f"vehicle-pose: no credible pose found (confidence {result.confidence:.2f}); "
+              f"the result is marked failed", file=sys.stderr)
+        return 4
     return 0
 
 

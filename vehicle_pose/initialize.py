@@ -1,29 +1,45 @@
-"""Start poses for the optimiser (method.md §5, step 1).
+"""Start poses for the optimiser (method.md §5, step 1) when the client gives no start camera.
 
-A client's start camera is used as given. From a vehicle box alone (or, with no hint, a central
-box) a coarse sweep over views picks the start: each view is placed so that the model's
-projection fills the box, and scored with the invariant loss against a GrabCut foreground of the
-box at low resolution.
+A grid of views (azimuth x elevation x in-plane roll) is placed so that the model's projection
+fills the vehicle's region, rendered at low resolution and scored against the region (silhouette
+IoU) and the photo (the invariant loss on the region's pixels); the best few distinct views are
+kept. Start poses from matched wheel ellipses (:mod:`vehicle_pose.wheels`) are scored the same
+way, so both kinds compete on one scale.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy.spatial.transform import Rotation
 
 from .camera import Camera, look_at_camera
 from .errors import CameraError
 from .library import VehicleModel
 from .loss import InvariantLoss, make_target
 from .metadata import parse_axis
+from .region import VehicleRegion
 from .render import Renderer
 
-__all__ = ["parse_bbox", "central_box", "camera_for_view", "start_from_box"]
+__all__ = [
+    "Box",
+    "Candidate",
+    "SearchGrid",
+    "parse_bbox",
+    "fit_to_box",
+    "view_camera",
+    "score_cameras",
+    "view_search",
+    "distinct",
+    "rotation_angle",
+]
 
 Box = tuple[float, float, float, float]
+FloatArray = npt.NDArray[np.float64]
 
 
 def parse_bbox(value: str | Sequence[float], width: int, height: int) -> Box:
@@ -42,81 +58,160 @@ def parse_bbox(value: str | Sequence[float], width: int, height: int) -> Box:
     return x0, y0, x1, y1
 
 
-def central_box(width: int, height: int) -> Box:
-    """The box assumed when no hint is given: the central part of the photo."""
-    return 0.1 * width, 0.15 * height, 0.9 * width, 0.9 * height
+@dataclass(frozen=True)
+class Candidate:
+    """A scored start pose.
+
+    ``score`` = (1 - ``iou``) + ``loss`` / its maximum: lower is better. ``source`` is
+    ``"view-search"`` or ``"wheels"``; ``detail`` says which view or which wheel pair.
+    """
+
+    camera: Camera
+    source: str
+    score: float = float("inf")
+    iou: float = 0.0
+    loss: float = float("inf")
+    detail: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, object]:
+        return {"source": self.source, "score": self.score, "iou": self.iou, "loss": self.loss, **self.detail}
 
 
-def camera_for_view(
-    model: VehicleModel, azimuth_deg: float, elevation_deg: float, box: Box, width: int, height: int, focal: float
+@dataclass(frozen=True)
+class SearchGrid:
+    """The views of the search: degrees, azimuth 0 = the vehicle's front, 90 = its left side."""
+
+    azimuths: tuple[float, ...] = tuple(float(a) for a in range(0, 360, 15))
+    elevations: tuple[float, ...] = (4.0, 16.0, 30.0)
+    rolls: tuple[float, ...] = (-6.0, 0.0, 6.0)
+    focal: float = 1.5
+    """Focal length of the search views, in image widths (about a 50 mm lens on full frame)."""
+
+
+def rotation_angle(a: FloatArray, b: FloatArray) -> float:
+    """Angle in degrees of the rotation between two rotation matrices."""
+    c = (np.trace(a @ b.T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box, *, rounds: int = 3) -> Camera:
+    """The camera moved along and across its axis so that ``points`` project onto ``box``.
+
+    The rotation and intrinsics stay; ``anchor`` (a point of the model, its centre) keeps its
+    direction while the depth is scaled to match the box's size and the image shifted to match
+    its centre.
+    """
+    K, R = camera.K, camera.R
+    bw, bh = max(box[2] - box[0], 1.0), max(box[3] - box[1], 1.0)
+    bc = np.array([0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3])])
+    depth = float(camera.to_camera(anchor[None])[0, 2])
+    pix = camera.project(anchor[None])[0]
+    if not (depth > 0 and np.all(np.isfinite(pix))):
+        depth, pix = float(np.linalg.norm(camera.t)), camera.centre
+    cam = camera
+    for _ in range(rounds):
+        ray = np.linalg.solve(K, np.array([pix[0], pix[1], 1.0]))
+        cam = Camera(K, R, depth * ray - R @ anchor, camera.width, camera.height)
+        uv = cam.project(points)
+        if not np.all(np.isfinite(uv)):
+            depth *= 2.0
+            continue
+        span = uv.max(0) - uv.min(0)
+        depth *= float(np.sqrt(max(span[0], 1e-6) / bw * max(span[1], 1e-6) / bh))
+        pix = pix + bc - 0.5 * (uv.min(0) + uv.max(0))
+    ray = np.linalg.solve(K, np.array([pix[0], pix[1], 1.0]))
+    return Camera(K, R, depth * ray - R @ anchor, camera.width, camera.height)
+
+
+def view_camera(
+    model: VehicleModel, azimuth: float, elevation: float, roll: float, box: Box, width: int, height: int, focal: float
 ) -> Camera:
-    """A camera at the given view whose projection of the model fills ``box``."""
-    mesh = model.mesh
+    """A camera at the given view (degrees) whose projection of the model fills ``box``."""
+    centre, radius = model.mesh.sphere
     up = parse_axis(model.info.up)
-    wheels = model.wheels
-    fwd = wheels.front_axle_center - wheels.rear_axle_center
+    fwd = model.wheels.front_axle_center - model.wheels.rear_axle_center
     fwd = fwd - (fwd @ up) * up
     fwd /= np.linalg.norm(fwd)
-    centre, radius = mesh.sphere
-    pts = mesh.box_corners
-    bw, bh = box[2] - box[0], box[3] - box[1]
-    bc = np.array([0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3])])
-    distance = focal * 2.0 * radius / max(min(bw, bh), 1.0) + radius
-
-    def at(d: float) -> Camera:
-        return look_at_camera(
-            centre, fwd, up, azimuth_deg=azimuth_deg, elevation_deg=elevation_deg,
-            distance=d, focal=focal, width=width, height=height,
-        )
-
-    cam = at(distance)
-    for _ in range(3):
-        uv = cam.project(pts)
-        if not np.all(np.isfinite(uv)):
-            distance *= 2.0
-        else:
-            span = uv.max(0) - uv.min(0)
-            distance *= max(span[0] / bw, span[1] / bh)
-        cam = at(distance)
-        uv = cam.project(pts)
-        shift = bc - 0.5 * (uv.min(0) + uv.max(0))
-        depth = float(cam.to_camera(centre[None])[0, 2])
-        t = cam.t + np.array([shift[0], shift[1], 0.0]) * depth / focal
-        cam = Camera(cam.K, cam.R, t, width, height)
-    return cam
+    cam = look_at_camera(centre, fwd, up, azimuth_deg=azimuth, elevation_deg=elevation,
+                         distance=4.0 * radius, focal=focal, width=width, height=height)
+    if roll:
+        R = Rotation.from_euler("z", roll, degrees=True).as_matrix() @ cam.R
+        cam = Camera(cam.K, R, R @ (cam.R.T @ cam.t), width, height)
+    return fit_to_box(cam, model.mesh.sample_points(600), centre, box)
 
 
-def start_from_box(
+class _Scorer:
+    """Scores cameras on a reduced photo against a region: silhouette IoU and invariant loss."""
+
+    def __init__(self, rgb: npt.NDArray[np.uint8], region: VehicleRegion, model: VehicleModel,
+                 renderer: Renderer, size: int, max_faces: int) -> None:
+        H, W = rgb.shape[:2]
+        s = min(1.0, size / max(W, H))
+        self.w, self.h = max(8, round(W * s)), max(8, round(H * s))
+        small = cv2.resize(rgb, (self.w, self.h), interpolation=cv2.INTER_AREA)
+        self.region = region.resized(self.w, self.h).mask
+        self.area = float(self.region.sum())
+        self.loss = InvariantLoss(make_target(small, self.region, color=False))
+        self.mesh = model.lod(max_faces)
+        self.renderer = renderer
+
+    def __call__(self, camera: Camera) -> tuple[float, float, float]:
+        frame = self.renderer.render(self.mesh, camera.scaled(self.w, self.h))
+        cov = frame.coverage
+        inter = float((cov & self.region).sum())
+        union = float(cov.sum()) + self.area - inter
+        iou = inter / union if union > 0 else 0.0
+        loss = float(self.loss(frame))
+        return (1.0 - iou) + loss / self.loss.max_value(5), iou, loss
+
+
+def score_cameras(
     rgb: npt.NDArray[np.uint8],
+    region: VehicleRegion,
     model: VehicleModel,
-    box: Box,
+    candidates: Iterable[Candidate],
     renderer: Renderer,
     *,
-    max_faces: int = 20000,
     size: int = 160,
-    azimuths: Sequence[float] = tuple(range(0, 360, 30)),
-    elevations: Sequence[float] = (8.0, 22.0),
-) -> Camera:
-    """The best of a sweep of views fitted to ``box``, at the photo's size, f = 10 W."""
+    max_faces: int = 4096,
+) -> list[Candidate]:
+    """The candidates with their score, IoU and loss filled in, best first."""
+    scorer = _Scorer(rgb, region, model, renderer, size, max_faces)
+    out = []
+    for cand in candidates:
+        score, iou, loss = scorer(cand.camera)
+        out.append(replace(cand, score=score, iou=iou, loss=loss))
+    return sorted(out, key=lambda c: c.score)
+
+
+def distinct(candidates: Sequence[Candidate], count: int, *, min_angle: float = 25.0) -> list[Candidate]:
+    """The best ``count`` candidates whose rotations differ pairwise by at least ``min_angle``."""
+    kept: list[Candidate] = []
+    for cand in sorted(candidates, key=lambda c: c.score):
+        if all(rotation_angle(cand.camera.R, k.camera.R) >= min_angle for k in kept):
+            kept.append(cand)
+            if len(kept) == count:
+                break
+    return kept
+
+
+def view_search(
+    rgb: npt.NDArray[np.uint8],
+    region: VehicleRegion,
+    model: VehicleModel,
+    renderer: Renderer,
+    *,
+    grid: SearchGrid = SearchGrid(),
+    size: int = 160,
+    max_faces: int = 4096,
+) -> list[Candidate]:
+    """Every view of ``grid`` fitted to the region and scored, best first (at the photo's size)."""
     H, W = rgb.shape[:2]
-    s = min(1.0, size / max(W, H))
-    w, h = max(8, round(W * s)), max(8, round(H * s))
-    small = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-    sbox = tuple(v * s for v in box)
-    mask = np.zeros((h, w), np.uint8)
-    rect = (int(sbox[0]), int(sbox[1]), max(2, int(sbox[2] - sbox[0])), max(2, int(sbox[3] - sbox[1])))
-    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
-    cv2.setRNGSeed(0)
-    cv2.grabCut(cv2.cvtColor(small, cv2.COLOR_RGB2BGR), mask, rect, bgd, fgd, 3, cv2.GC_INIT_WITH_RECT)
-    fg = (mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)
-    loss = InvariantLoss(make_target(small, fg, color=True))
-    mesh = model.lod(max_faces)
-    best: tuple[float, float, float] | None = None
-    for az in azimuths:
-        for el in elevations:
-            cam = camera_for_view(model, az, el, sbox, w, h, 10.0 * w)
-            value = loss(renderer.render(mesh, cam))
-            if best is None or value < best[0]:
-                best = (value, az, el)
-    assert best is not None
-    return camera_for_view(model, best[1], best[2], box, W, H, 10.0 * W)
+    cands = [
+        Candidate(view_camera(model, az, el, roll, region.box, W, H, grid.focal * W), "view-search",
+                  detail={"azimuth": az, "elevation": el, "roll": roll})
+        for az in grid.azimuths
+        for el in grid.elevations
+        for roll in grid.rolls
+    ]
+    return score_cameras(rgb, region, model, cands, renderer, size=size, max_faces=max_faces)

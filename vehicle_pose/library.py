@@ -19,7 +19,7 @@ from .errors import ModelError, UnknownModelError
 from .mesh import Mesh, load_mesh
 from .metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
 
-__all__ = ["VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
+__all__ = ["AUTO", "VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
 
 
 def default_library_root() -> Path:
@@ -77,6 +77,9 @@ def model_from_mesh(
     return VehicleModel(_complete(info, mesh), mesh)
 
 
+AUTO = "auto"
+"""The model spec that asks for identification among every model of the library."""
+
 MODEL_ID = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 """Model ids: lower-case letters, digits, ``-`` and ``_``, at most 64 characters."""
 
@@ -97,8 +100,8 @@ def install_model(
     same up and forward axes) raises ModelError and leaves nothing behind. The metadata is
     written last, so a half-copied model is never listed.
     """
-    if not MODEL_ID.match(model_id):
-        raise ModelError(f"model id {model_id!r} must match {MODEL_ID.pattern}")
+    if not MODEL_ID.match(model_id) or model_id == AUTO:
+        raise ModelError(f"model id {model_id!r} must match {MODEL_ID.pattern} and not be {AUTO!r}")
     if units not in UNITS:
         raise ModelError(f"unknown units {units!r}; choose one of {', '.join(UNITS)}")
     src = Path(mesh_file)
@@ -167,6 +170,23 @@ class ModelLibrary:
             known = ", ".join(self.ids()) or "none"
             raise UnknownModelError(f"unknown model {model_id!r} (known: {known})")
         return ModelInfo.from_json(path)
+
+    def resolve(self, spec: str, *, limit: int = 16) -> list[str]:
+        """Model ids named by ``spec``: one id, ``a,b,c`` (candidates to identify among), or
+        ``auto`` (every model of the library). UnknownModelError names any unknown id."""
+        if spec.strip() == AUTO:
+            ids = self.ids()
+        else:
+            ids = list(dict.fromkeys(p.strip() for p in spec.split(",") if p.strip()))
+        if not ids:
+            raise UnknownModelError(f"no model named in {spec!r}")
+        if len(ids) > limit:
+            raise UnknownModelError(f"{len(ids)} candidate models; at most {limit} may be identified at once")
+        unknown = [i for i in ids if i not in self]
+        if unknown:
+            known = ", ".join(self.ids()) or "none"
+            raise UnknownModelError(f"unknown model {', '.join(map(repr, unknown))} (known: {known})")
+        return ids
 
     def forget(self, model_id: str) -> None:
         """Drop a cached model (after its files changed)."""

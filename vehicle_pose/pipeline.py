@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -17,17 +17,27 @@ import numpy.typing as npt
 
 from .camera import Camera
 from .errors import CameraError, PoseError
-from .initialize import central_box, parse_bbox, start_from_box
+from .initialize import (
+    Candidate,
+    distinct,
+    parse_bbox,
+    rotation_angle,
+    score_cameras,
+    view_search,
+)
 from .library import VehicleModel
 from .loss import make_target
 from .losses import LOSSES, make_loss
 from .optimize import OPTIMIZERS, Optimizer
 from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
+from .photo import is_gray
 from .pose import Side, Theta, camera_to_theta, visible_side
+from .region import VehicleRegion, find_vehicle
 from .render import Renderer
 from .segment import grabcut_foreground
+from .wheels import detect_wheels, wheel_candidates
 
-__all__ = ["RegistrationOptions", "LevelReport", "RegistrationResult", "register"]
+__all__ = ["RegistrationOptions", "LevelReport", "RegistrationResult", "register", "confidence"]
 
 Progress = Callable[[str, int, float], None]
 _INVALID = 10.0
@@ -76,6 +86,19 @@ class RegistrationOptions:
         Search coordinates: ``"view"`` (default) or ``"theta"`` (the paper's), see
         :mod:`vehicle_pose.parametrize`; the paper's theta succeeded on 50 % of the photoreal
         cases even with the true mask, the view coordinates on 85 % (docs/benchmarks.md).
+    starts : int
+        Without a start camera: how many distinct start poses (view search and wheel pairs)
+        are screened on a reduced photo.
+    refine : int
+        How many of the best distinct screened poses are refined at full size.
+    screen_size : int
+        Longer side of the photo for screening (one level).
+    screen_evaluations : int
+        Loss evaluations allowed per screened start.
+    wheels : bool
+        Add start poses from matched wheel ellipses to those of the view search.
+    min_confidence : float
+        A pose found without a start camera whose confidence is lower is flagged ``failed``.
     """
 
     loss: str = "invariant"
@@ -93,6 +116,12 @@ class RegistrationOptions:
     max_evaluations: int = 400
     side: str = "auto"
     parametrization: str = "view"
+    starts: int = 4
+    refine: int = 2
+    screen_size: int = 200
+    screen_evaluations: int = 300
+    wheels: bool = True
+    min_confidence: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -113,7 +142,13 @@ class RegistrationResult:
     """A registered pose and how it was found.
 
     ``camera`` maps mesh coordinates to pixels of the photo as given (OpenCV convention);
-    ``foreground`` is the GrabCut mask at the photo's size.
+    ``foreground`` is the GrabCut mask at the photo's size. ``start_source`` is the hint the
+    client gave (``init_camera``, ``bbox`` or ``none``), ``start_method`` how the winning start
+    was found (``given``, ``view-search`` or ``wheels``). ``confidence`` (in [0, 1], see
+    :func:`confidence`) and ``failed`` judge a pose found without a start camera; ``checks``
+    holds the measures behind them (``foreground_iou``, the final silhouette against the final
+    GrabCut mask, and ``loss``, the final loss over its maximum, for every run), ``candidates``
+    the screened starts.
     """
 
     camera: Camera
@@ -129,6 +164,11 @@ class RegistrationResult:
     options: RegistrationOptions
     foreground: npt.NDArray[np.bool_] = field(repr=False)
     timings: dict[str, float] = field(default_factory=dict)
+    start_method: str = "given"
+    confidence: float | None = None
+    failed: bool = False
+    checks: dict[str, float] = field(default_factory=dict)
+    candidates: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON result: camera, theta, BOP-style fields, loss, counts, timings."""
@@ -149,7 +189,15 @@ class RegistrationResult:
                 "wheels": self.model.wheels.to_dict(),
                 "estimated": list(info.estimated),
             },
-            "start": {"source": self.start_source, "camera": self.start_camera.to_dict()},
+            "confidence": self.confidence,
+            "failed": self.failed,
+            "checks": self.checks,
+            "start": {
+                "source": self.start_source,
+                "method": self.start_method,
+                "camera": self.start_camera.to_dict(),
+                "candidates": self.candidates,
+            },
             "levels": [vars(level) for level in self.levels],
             "timings": self.timings,
             "cam_R_m2c": cam.R.reshape(-1).tolist(),
@@ -186,6 +234,124 @@ def _face_budget(pixels: float, options: RegistrationOptions) -> int:
     return int(2 ** np.ceil(np.log2(wanted)))
 
 
+@dataclass
+class _Fit:
+    """One single-start registration at working size."""
+
+    camera: Camera
+    levels: list[LevelReport]
+    foreground: npt.NDArray[np.bool_]
+    grabcut_seconds: float
+
+    @property
+    def loss(self) -> float:
+        return self.levels[-1].loss
+
+
+def _fit(
+    work: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    start: Camera,
+    options: RegistrationOptions,
+    renderer: Renderer,
+    optimizer: Optimizer,
+    progress: Progress | None,
+    foreground: npt.NDArray[np.bool_] | None,
+    stage_prefix: str = "",
+) -> _Fit:
+    """Register from one start camera on ``work`` (already at working size)."""
+    Hf, Wf = work.shape[:2]
+    start = start.scaled(Wf, Hf)
+    side: Side
+    if options.side in ("left", "right"):
+        side = options.side  # type: ignore[assignment]
+    else:
+        side = visible_side(start, model.wheels.side("left"))
+    geometry = model.wheels.side(side)
+
+    coarse_mesh = model.lod(options.min_faces)
+    silhouette = renderer.render(coarse_mesh, start).coverage
+    if silhouette.sum() < 16:
+        raise PoseError("the start pose puts the model off-screen or behind the camera")
+
+    t = time.perf_counter()
+    segment_again = options.grabcut and options.resegment and foreground is None
+    if foreground is not None:
+        foreground = _resize_mask(foreground, Wf, Hf)
+    elif options.grabcut:
+        foreground = grabcut_foreground(work, silhouette, margin=options.grabcut_margin)
+    else:
+        foreground = np.ones((Hf, Wf), bool)
+    grabcut_seconds = time.perf_counter() - t
+
+    camera = start
+    levels: list[LevelReport] = []
+    sizes = _level_sizes(Wf, Hf, options)
+    for li, (w, h) in enumerate(sizes):
+        t = time.perf_counter()
+        mesh = model.lod(_face_budget(float(silhouette.sum()) * (w * h) / (Wf * Hf), options))
+        target = make_target(_resize(work, w, h), _resize_mask(foreground, w, h), color=options.color)
+        loss_fn = make_loss(options.loss, target)
+        params: Parametrization
+        if options.parametrization == "view":
+            params = ViewParams(camera.scaled(w, h), model.mesh.sphere[0])
+        else:
+            params = ThetaParams(camera.scaled(w, h), geometry, side)
+        try:
+            x0 = params.start()
+        except PoseError:
+            raise PoseError(f"the start pose does not show the {side} side's wheels") from None
+        steps = params.steps() * 0.4**li
+        stage = f"{stage_prefix}level {li + 1}/{len(sizes)} ({w}x{h})"
+        counter = [0]
+
+        def objective(x: npt.NDArray[np.float64]) -> float:
+            try:
+                cam = params.camera(x)
+            except (PoseError, CameraError):
+                return _INVALID
+            value = float(loss_fn(renderer.render(mesh, cam)))
+            counter[0] += 1
+            if progress is not None and counter[0] % 20 == 0:
+                progress(stage, counter[0], value)
+            return value
+
+        res = optimizer(objective, x0, steps, max_evaluations=options.max_evaluations)
+        camera = params.camera(res.x).scaled(Wf, Hf)
+        levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, res.fun, time.perf_counter() - t))
+        if progress is not None:
+            progress(stage, res.evaluations, res.fun)
+        if segment_again and li < len(sizes) - 1:
+            t = time.perf_counter()
+            current = renderer.render(coarse_mesh, camera).coverage
+            if current.sum() >= 16:
+                foreground = grabcut_foreground(work, current, margin=options.resegment_margin, sure_core=True)
+            grabcut_seconds += time.perf_counter() - t
+    return _Fit(camera, levels, foreground, grabcut_seconds)
+
+
+def _iou(a: npt.NDArray[np.bool_], b: npt.NDArray[np.bool_]) -> float:
+    union = float((a | b).sum())
+    return float((a & b).sum()) / union if union else 0.0
+
+
+def confidence(checks: dict[str, float]) -> float:
+    """How credible a pose found without a start camera is, in [0, 1].
+
+    The product of three factors: how well the final silhouette agrees with the vehicle's
+    region found before any pose was known (``region_iou``, credited from 0.5 up to 0.8), how
+    low the final invariant loss is against its maximum (``loss``, credited from 0.45 down to
+    0.15), and the margin of the winning start's screened loss over the best distinct
+    alternative, or the agreement of the other starts with the winner (``margin``,
+    ``agreement``).
+    """
+    region = np.clip((checks.get("region_iou", 0.0) - 0.5) / 0.3, 0.0, 1.0)
+    fit = np.clip((0.45 - checks.get("loss", 1.0)) / 0.3, 0.0, 1.0)
+    margin = max(checks.get("margin", 0.0), checks.get("agreement", 0.0))
+    unique = np.clip(0.5 + 5.0 * margin, 0.0, 1.0)
+    return float(region * fit * unique)
+
+
 def register(
     photo: npt.NDArray[np.uint8],
     model: VehicleModel,
@@ -199,6 +365,12 @@ def register(
     foreground: npt.NDArray[np.bool_] | None = None,
 ) -> RegistrationResult:
     """Find the camera that makes the model coincide with the vehicle in the photo.
+
+    With a start camera, one coarse-to-fine search runs from it. Without one (a box, or no hint
+    at all), the vehicle's region is found first (GrabCut from the box or a central
+    rectangle), start poses come from a view search and from matched wheel ellipses, the best
+    ``options.starts`` distinct ones are screened on a reduced photo, the best ``options.refine``
+    are refined at full size, and the lowest loss wins, with a confidence and a ``failed`` flag.
 
     Parameters
     ----------
@@ -239,97 +411,108 @@ def register(
         raise ValueError(f"unknown parametrization {options.parametrization!r}; choose one of {', '.join(PARAMETRIZATIONS)}")
     if options.loss not in LOSSES:
         raise ValueError(f"unknown loss {options.loss!r}; choose one of {', '.join(LOSSES)}")
+    if options.side not in ("auto", "left", "right"):
+        raise ValueError(f"side must be 'auto', 'left' or 'right', not {options.side!r}")
+    if options.starts < 1 or options.refine < 1:
+        raise ValueError("starts and refine must be at least 1")
+    if foreground is not None and foreground.shape != (H0, W0):
+        raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
 
     s = min(1.0, options.max_size / max(W0, H0))
     Wf, Hf = max(8, round(W0 * s)), max(8, round(H0 * s))
     work = _resize(photo, Wf, Hf)
+    fg = _resize_mask(foreground.astype(bool), Wf, Hf) if foreground is not None else None
 
-    t = time.perf_counter()
+    checks: dict[str, float] = {}
+    listed: list[dict[str, Any]] = []
     if init_camera is not None:
-        source = "init_camera"
+        source, method = "init_camera", "given"
         start = init_camera.scaled(Wf, Hf)
+        timings["start"] = 0.0
+        fit = _fit(work, model, start, options, renderer, optimizer, progress, fg)
+        grabcut_seconds = fit.grabcut_seconds
     else:
         source = "bbox" if bbox is not None else "none"
-        box = parse_bbox(bbox, W0, H0) if bbox is not None else central_box(W0, H0)
-        box = tuple(v * Wf / W0 if i % 2 == 0 else v * Hf / H0 for i, v in enumerate(box))
-        start = start_from_box(work, model, box, renderer, max_faces=options.min_faces)  # type: ignore[arg-type]
-    timings["start"] = time.perf_counter() - t
-
-    side: Side
-    if options.side in ("left", "right"):
-        side = options.side  # type: ignore[assignment]
-    elif options.side == "auto":
-        side = visible_side(start, model.wheels.side("left"))
-    else:
-        raise ValueError(f"side must be 'auto', 'left' or 'right', not {options.side!r}")
-    geometry = model.wheels.side(side)
-
-    coarse_mesh = model.lod(options.min_faces)
-    silhouette = renderer.render(coarse_mesh, start).coverage
-    if silhouette.sum() < 16:
-        raise PoseError("the start pose puts the model off-screen or behind the camera")
-
-    t = time.perf_counter()
-    segment_again = options.grabcut and options.resegment and foreground is None
-    if foreground is not None:
-        if foreground.shape != (H0, W0):
-            raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
-        foreground = _resize_mask(foreground.astype(bool), Wf, Hf)
-    elif options.grabcut:
-        foreground = grabcut_foreground(work, silhouette, margin=options.grabcut_margin)
-    else:
-        foreground = np.ones((Hf, Wf), bool)
-    timings["grabcut"] = time.perf_counter() - t
-
-    camera = start
-    levels: list[LevelReport] = []
-    sizes = _level_sizes(Wf, Hf, options)
-    for li, (w, h) in enumerate(sizes):
+        box = parse_bbox(bbox, W0, H0) if bbox is not None else None
         t = time.perf_counter()
-        mesh = model.lod(_face_budget(float(silhouette.sum()) * (w * h) / (Wf * Hf), options))
-        target = make_target(_resize(work, w, h), _resize_mask(foreground, w, h), color=options.color)
-        loss_fn = make_loss(options.loss, target)
-        params: Parametrization
-        if options.parametrization == "view":
-            params = ViewParams(camera.scaled(w, h), model.mesh.sphere[0])
-        else:
-            params = ThetaParams(camera.scaled(w, h), geometry, side)
-        try:
-            x0 = params.start()
-        except PoseError:
-            raise PoseError(f"the start pose does not show the {side} side's wheels") from None
-        steps = params.steps() * 0.4**li
-        stage = f"level {li + 1}/{len(sizes)} ({w}x{h})"
-        counter = [0]
-
-        def objective(x: npt.NDArray[np.float64]) -> float:
-            try:
-                cam = params.camera(x)
-            except (PoseError, CameraError):
-                return _INVALID
-            value = float(loss_fn(renderer.render(mesh, cam)))
-            counter[0] += 1
-            if progress is not None and counter[0] % 20 == 0:
-                progress(stage, counter[0], value)
-            return value
-
-        res = optimizer(objective, x0, steps, max_evaluations=options.max_evaluations)
-        camera = params.camera(res.x).scaled(Wf, Hf)
-        levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, res.fun, time.perf_counter() - t))
         if progress is not None:
-            progress(stage, res.evaluations, res.fun)
-        if segment_again and li < len(sizes) - 1:
-            t = time.perf_counter()
-            current = renderer.render(coarse_mesh, camera).coverage
-            if current.sum() >= 16:
-                foreground = grabcut_foreground(work, current, margin=options.resegment_margin, sure_core=True)
-            timings["grabcut"] += time.perf_counter() - t
+            progress("finding the vehicle", 0, float("nan"))
+        rect = None if box is None else tuple(v * Wf / W0 if i % 2 == 0 else v * Hf / H0 for i, v in enumerate(box))
+        region = find_vehicle(work, rect=rect)  # type: ignore[arg-type]
+        if fg is not None:
+            region = VehicleRegion(fg, region.box)
+        cands = view_search(work, region, model, renderer, max_faces=min(4096, options.min_faces))
+        if options.wheels:
+            ellipses = detect_wheels(work, region, max_count=4)
+            pairs = wheel_candidates(ellipses, model, Wf, Hf)
+            cands += score_cameras(work, region, model, pairs, renderer, max_faces=min(4096, options.min_faces))
+        starts = distinct(cands, options.starts)
+        timings["start"] = time.perf_counter() - t
 
+        # Screen every start on a reduced photo, then refine the best distinct ones.
+        ss = min(1.0, options.screen_size / max(Wf, Hf))
+        Ws, Hs = max(8, round(Wf * ss)), max(8, round(Hf * ss))
+        small = _resize(work, Ws, Hs)
+        screen_opts = replace(options, max_size=max(Ws, Hs), coarse_to_fine=False, resegment=False,
+                              max_evaluations=options.screen_evaluations)
+        screened: list[tuple[float, Camera, Candidate]] = []
+        grabcut_seconds = 0.0
+        for k, cand in enumerate(starts):
+            try:
+                sf = _fit(small, model, cand.camera, screen_opts, renderer, optimizer, progress,
+                          None if fg is None else _resize_mask(fg, Ws, Hs), f"start {k + 1}/{len(starts)}: ")
+            except PoseError:
+                continue
+            grabcut_seconds += sf.grabcut_seconds
+            screened.append((sf.loss, sf.camera.scaled(Wf, Hf), cand))
+            listed.append(cand.to_dict() | {"screened_loss": sf.loss})
+        if not screened:
+            raise PoseError("no start pose puts the model in view of the photo")
+        screened.sort(key=lambda e: e[0])
+        timings["screen"] = time.perf_counter() - t - timings["start"]
+        chosen: list[tuple[float, Camera, Candidate]] = []
+        for entry in screened:
+            if all(rotation_angle(entry[1].R, c[1].R) >= 10.0 for c in chosen):
+                chosen.append(entry)
+            if len(chosen) == options.refine:
+                break
+        refine_opts = replace(options, coarse_sizes=tuple(c for c in options.coarse_sizes if c > options.screen_size))
+        fits = []
+        for k, (_, cam, cand) in enumerate(chosen):
+            prefix = f"refine {k + 1}/{len(chosen)}: " if len(chosen) > 1 else "refine: "
+            fits.append((_fit(work, model, cam, refine_opts, renderer, optimizer, progress, fg, prefix), cand))
+        best_fit, best_cand = min(fits, key=lambda e: e[0].loss)
+        fit = best_fit
+        grabcut_seconds += sum(f.grabcut_seconds for f, _ in fits)
+        start, method = best_cand.camera.scaled(Wf, Hf), best_cand.source
+
+        # Credibility: agreement with the pose-free region, final loss, margin over alternatives.
+        won = next(e for e in screened if e[2] is best_cand)
+        others = [e[0] for e in screened if rotation_angle(e[1].R, fit.camera.R) >= 15.0]
+        near = [e for e in screened if e is not won and rotation_angle(e[1].R, fit.camera.R) < 15.0]
+        rivals = [f.loss for f, _ in fits if rotation_angle(f.camera.R, fit.camera.R) >= 15.0]
+        final_sil = renderer.render(model.lod(options.min_faces), fit.camera).coverage
+        checks = {
+            "region_iou": _iou(final_sil, region.mask),
+            "margin": (
+                (min(rivals) - fit.loss) / max(min(rivals), 1e-9) if rivals
+                else (min(others) - won[0]) / max(min(others), 1e-9) if others else 1.0
+            ),
+            "agreement": len(near) / max(1, len(screened) - 1),
+        }
+    timings["grabcut"] = grabcut_seconds
+    final_sil = renderer.render(model.lod(options.min_faces), fit.camera).coverage
+    checks["foreground_iou"] = _iou(final_sil, fit.foreground)
+    checks["loss"] = fit.loss / (3.0 if options.color and not is_gray(work) else 1.0)
+
+    camera = fit.camera
+    levels = fit.levels
     final = camera.scaled(W0, H0)
     side = visible_side(final, model.wheels.side("left"))
     theta = camera_to_theta(final, model.wheels.side(side), side)
     seconds = time.perf_counter() - t_start
     timings["optimize"] = sum(level.seconds for level in levels)
+    conf = confidence(checks) if "region_iou" in checks else None
     return RegistrationResult(
         camera=final,
         theta=theta,
@@ -342,6 +525,11 @@ def register(
         start_camera=start.scaled(W0, H0),
         levels=levels,
         options=options,
-        foreground=_resize_mask(foreground, W0, H0),
+        foreground=_resize_mask(fit.foreground, W0, H0),
         timings=timings,
+        start_method=method,
+        confidence=conf,
+        failed=conf is not None and conf < options.min_confidence,
+        checks=checks,
+        candidates=listed,
     )

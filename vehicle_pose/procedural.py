@@ -21,7 +21,7 @@ import trimesh
 
 from .metadata import WheelGeometry
 
-__all__ = ["CarSpec", "SEDAN", "build_car", "write_model"]
+__all__ = ["CarSpec", "SEDAN", "HATCHBACK", "SUV", "VAN", "PICKUP", "SPECS", "build_car", "write_model"]
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,77 @@ SEDAN = CarSpec(
     top=((2.3, 0.62), (2.2, 0.84), (0.95, 0.98), (0.15, 1.44), (-0.95, 1.44), (-1.6, 1.04), (-2.25, 1.0), (-2.3, 0.7)),
     glass_x=(-1.55, 0.9),
 )
+
+HATCHBACK = CarSpec(
+    id="hatchback",
+    name="Procedural hatchback",
+    length=4.05,
+    width=1.75,
+    wheelbase=2.55,
+    track=1.5,
+    wheel_radius=0.31,
+    tyre_width=0.2,
+    clearance=0.16,
+    belt=0.95,
+    roof_inset=0.2,
+    top=((2.02, 0.6), (1.92, 0.84), (0.85, 0.97), (0.05, 1.46), (-1.6, 1.43), (-1.96, 1.18), (-2.02, 0.92), (-2.02, 0.62)),
+    glass_x=(-1.9, 0.78),
+    body_albedo=0.55,
+)
+
+SUV = CarSpec(
+    id="suv",
+    name="Procedural SUV",
+    length=4.75,
+    width=1.92,
+    wheelbase=2.82,
+    track=1.64,
+    wheel_radius=0.38,
+    tyre_width=0.24,
+    clearance=0.26,
+    belt=1.14,
+    roof_inset=0.15,
+    top=((2.37, 0.78), (2.27, 1.04), (1.2, 1.17), (0.45, 1.74), (-2.05, 1.76), (-2.33, 1.55), (-2.37, 1.05), (-2.37, 0.8)),
+    glass_x=(-2.2, 1.1),
+    body_albedo=0.4,
+)
+
+VAN = CarSpec(
+    id="van",
+    name="Procedural van",
+    length=5.1,
+    width=1.98,
+    wheelbase=3.25,
+    track=1.7,
+    wheel_radius=0.36,
+    tyre_width=0.22,
+    clearance=0.2,
+    belt=1.12,
+    roof_inset=0.05,
+    top=((2.55, 0.78), (2.45, 1.06), (1.95, 1.24), (1.2, 2.02), (-2.5, 2.04), (-2.55, 1.9), (-2.55, 0.72)),
+    glass_x=(0.55, 2.0),
+    body_albedo=0.85,
+)
+
+PICKUP = CarSpec(
+    id="pickup",
+    name="Procedural pickup",
+    length=5.35,
+    width=1.96,
+    wheelbase=3.4,
+    track=1.7,
+    wheel_radius=0.4,
+    tyre_width=0.26,
+    clearance=0.28,
+    belt=1.2,
+    roof_inset=0.12,
+    top=((2.67, 0.82), (2.57, 1.14), (1.5, 1.24), (0.75, 1.86), (-0.55, 1.87), (-0.68, 1.28), (-2.62, 1.27), (-2.67, 0.86)),
+    glass_x=(-0.66, 1.32),
+    body_albedo=0.3,
+)
+
+SPECS: tuple[CarSpec, ...] = (SEDAN, HATCHBACK, SUV, VAN, PICKUP)
+"""Every body type shipped in ``vehicle_models/``."""
 
 
 def _profile(spec: CarSpec, x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
@@ -211,7 +282,7 @@ def write_model(spec: CarSpec, root: str | Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     root = Path(args[0]) if args else Path(__file__).resolve().parents[1] / "vehicle_models"
-    for spec in (SEDAN,):
+    for spec in SPECS:
         print(write_model(spec, root))
     return 0
 

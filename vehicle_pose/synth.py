@@ -15,10 +15,11 @@ import numpy as np
 import numpy.typing as npt
 
 from .camera import Camera
+from .library import VehicleModel
 from .mesh import Mesh
 from .render import Renderer
 
-__all__ = ["Lighting", "LIGHTINGS", "synthesize"]
+__all__ = ["Lighting", "LIGHTINGS", "synthesize", "random_framed_view"]
 
 
 @dataclass(frozen=True)
@@ -79,3 +80,27 @@ def synthesize(
     img += rng.normal(0.0, noise, img.shape)
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), mask
 
+
+
+def random_framed_view(
+    model: VehicleModel, rng: np.random.Generator, width: int, height: int
+) -> tuple[Camera, dict[str, float]]:
+    """A random camera that shows the whole vehicle: azimuth 0-360, elevation 3-30 degrees,
+    focal length 0.8-2.5 image widths, the vehicle 40-80 % of the image width, a little off
+    centre. Returns the camera and its view parameters."""
+    from .initialize import view_camera
+
+    az, el = float(rng.uniform(0, 360)), float(rng.uniform(3, 30))
+    focal = float(rng.uniform(0.8, 2.5)) * width
+    frac = float(rng.uniform(0.4, 0.8))
+    cx = width / 2 + rng.uniform(-0.08, 0.08) * width
+    cy = height / 2 + rng.uniform(-0.08, 0.08) * height
+    cam = view_camera(model, az, el, 0.0, (cx - 1, cy - 1, cx + 1, cy + 1), width, height, focal)
+    uv = cam.project(model.mesh.vertices)
+    aspect = (uv[:, 1].max() - uv[:, 1].min()) / max(uv[:, 0].max() - uv[:, 0].min(), 1e-9)
+    bw = frac * width
+    bh = min(bw * aspect, 0.85 * height)
+    bw = bh / aspect
+    box = (cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2)
+    cam = view_camera(model, az, el, 0.0, box, width, height, focal)
+    return cam, {"azimuth": az, "elevation": el, "focal": focal, "width_fraction": bw / width}

@@ -31,7 +31,8 @@ from vehicle_pose import (
     decode_photo,
     register,
 )
-from vehicle_pose.errors import RenderError
+from vehicle_pose.errors import PoseError, RenderError
+from vehicle_pose.identify import identify
 from vehicle_pose.overlay import draw_overlay, encode_image
 
 log = logging.getLogger(__name__)
@@ -109,11 +110,20 @@ class _Progress:
 
 def _register(job: Registration, storage: Storage, library: ModelLibrary, settings: Settings) -> None:
     photo = decode_photo(storage.get(job.photo_key), max_pixels=settings.max_photo_pixels)
-    model = library.load(job.model_id)
+    models = [library.load(model_id) for model_id in library.resolve(job.model_id)]
     init = Camera.from_dict(job.init_camera) if job.init_camera else None
     options = RegistrationOptions(**job.options)
     progress = _Progress(job.id, settings.progress_interval_s)
-    result = register(photo, model, init_camera=init, bbox=job.bbox, options=options, progress=progress)
+    if len(models) == 1:
+        result = register(photo, models[0], init_camera=init, bbox=job.bbox, options=options, progress=progress)
+        data = result.to_dict()
+    else:
+        ranking = identify(photo, models, init_camera=init, bbox=job.bbox, options=options, progress=progress)
+        if ranking[0].result is None:
+            raise PoseError(f"no candidate model could be registered: {ranking[0].error}")
+        result = ranking[0].result
+        data = result.to_dict() | {"identification": [c.to_dict() for c in ranking]}
+    model = result.model
     overlay = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels)
     overlay_key, thumb_key = f"overlays/{job.id}.png", f"thumbnails/{job.id}.jpg"
     storage.put(overlay_key, encode_image(overlay, ".png"), "image/png")
@@ -122,7 +132,7 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
         record = s.get(Registration, job.id)
         if record is None:
             return
-        record.result = result.to_dict()
+        record.result = data
         record.loss = float(result.loss)
         record.seconds = float(result.seconds)
         record.evaluations = int(result.evaluations)
@@ -130,7 +140,12 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
         record.stage = "done"
         record.overlay_key = overlay_key
         record.thumbnail_key = thumb_key
-        record.finish(JobStatus.succeeded)
+        if result.failed:
+            # The pose is kept for inspection, but the job does not claim success.
+            record.finish(JobStatus.failed, "no-credible-pose",
+                          f"no start pose led to a credible registration (confidence {result.confidence:.2f})")
+        else:
+            record.finish(JobStatus.succeeded)
 
 
 def run_job(

@@ -51,7 +51,11 @@ def submit(
     session: SessionDep,
     settings: SettingsDep,
     photo: Annotated[UploadFile, File(description="the vehicle photo (JPEG, PNG, WebP, TIFF or BMP)")],
-    model_id: Annotated[str, Form(description="id of a model from GET /v1/models")],
+    model_id: Annotated[
+        str,
+        Form(description="id of a model from GET /v1/models; a,b,c to identify the model among these; "
+                         "auto to identify it among every model"),
+    ],
     init_camera: Annotated[str | None, Form(description="start camera JSON {K, R, t, width, height}")] = None,
     bbox: Annotated[str | None, Form(description="vehicle box X0,Y0,X1,Y1 in pixels")] = None,
     options: Annotated[str | None, Form(description="engine options JSON, see RegistrationOptionsIn")] = None,

@@ -1,0 +1,176 @@
+"""No-hint registration, stage by stage, on synthetic ground truth made by the project's renderer."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import projection_error, view
+
+from vehicle_pose.camera import Camera
+from vehicle_pose.cli import main
+from vehicle_pose.errors import ModelError, UnknownModelError
+from vehicle_pose.identify import identify
+from vehicle_pose.initialize import distinct, rotation_angle, score_cameras, view_search
+from vehicle_pose.library import ModelLibrary, install_model
+from vehicle_pose.mesh import KINDS
+from vehicle_pose.overlay import save_png
+from vehicle_pose.pipeline import RegistrationOptions, register
+from vehicle_pose.region import find_vehicle
+from vehicle_pose.synth import LIGHTINGS, _background, synthesize
+from vehicle_pose.wheels import detect_wheels, wheel_candidates
+
+BODY_TYPES = ("sedan", "hatchback", "suv", "van", "pickup")
+
+
+@pytest.fixture(scope="module")
+def library() -> ModelLibrary:
+    return ModelLibrary()
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / (a | b).sum())
+
+
+def test_library_ships_five_distinct_body_types_with_material_groups(library):
+    assert set(BODY_TYPES) <= set(library.ids())
+    extents = []
+    for mid in BODY_TYPES:
+        model = library.load(mid)
+        assert library.load(mid) is model  # loaded once, then cached
+        assert model.info.estimated == ()  # generated models carry exact wheel metadata
+        kinds = {p.kind for p in model.mesh.parts}
+        assert {"body", "glass", "tyre", "wheel", "light"} <= kinds <= set(KINDS)
+        lod = model.lod(2048)
+        assert lod.n_faces <= 2600 and model.lod(2048) is lod
+        extents.append(model.mesh.bounds[1] - model.mesh.bounds[0])
+    extents = np.array(extents)
+    # Distinct shapes: every pair differs by at least 10 cm in length, width or height.
+    for i in range(len(extents)):
+        for j in range(i + 1, len(extents)):
+            assert np.abs(extents[i] - extents[j]).max() > 0.1
+
+
+def test_model_specs_resolve(library):
+    assert library.resolve("auto") == library.ids()
+    assert library.resolve("van, sedan,van") == ["van", "sedan"]
+    with pytest.raises(UnknownModelError, match="'bus'"):
+        library.resolve("sedan,bus")
+    with pytest.raises(UnknownModelError):
+        library.resolve(" , ")
+
+
+def test_auto_is_not_a_model_id(tmp_path, library):
+    with pytest.raises(ModelError, match="auto"):
+        install_model(tmp_path, "auto", library.info("sedan").mesh_path)
+
+
+def test_vehicle_region_without_hint(library, renderer):
+    truth = view(library.load("suv"), 60.0, 12.0, focal=900.0, distance=10.0)
+    photo, mask = synthesize(library.load("suv").mesh, truth, renderer=renderer, seed=3)
+    region = find_vehicle(photo)
+    assert _iou(region.mask, mask) > 0.9
+    ys, xs = np.nonzero(mask)
+    assert np.allclose(region.box, (xs.min(), ys.min(), xs.max(), ys.max()), atol=12)
+
+
+@pytest.mark.parametrize("azimuth,elevation", [(75.0, 6.0), (250.0, 10.0)])
+def test_wheel_ellipses_found_where_the_wheels_project(library, renderer, azimuth, elevation):
+    sedan = library.load("sedan")
+    truth = view(sedan, azimuth, elevation, focal=1200.0, distance=11.0)
+    photo, mask = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=5)
+    side = "left" if azimuth < 180 else "right"
+    geometry = sedan.wheels.side(side)
+    ellipses = detect_wheels(photo, find_vehicle(photo))
+    up, fwd = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    ring = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    for centre in (geometry.rear, geometry.front):
+        c = truth.project(centre[None])[0]
+        rim = centre + sedan.wheels.wheel_radius * (np.cos(ring)[:, None] * fwd + np.sin(ring)[:, None] * up)
+        radius_px = 0.5 * np.ptp(truth.project(rim)[:, 1])
+        near = [e for e in ellipses if np.hypot(*(np.array(e.centre) - c)) < 0.35 * radius_px]
+        assert near, f"no ellipse near the projected wheel at {c}: {[e.to_dict() for e in ellipses]}"
+        e = near[0]
+        assert 0.8 < e.a / radius_px < 1.3
+        # The axis ratio is the cosine of the axle's angle to the line of sight.
+        psi = truth.R @ geometry.axle
+        assert abs(e.b / e.a - abs(psi[2]) / np.linalg.norm(psi)) < 0.15
+
+
+def test_wheel_pair_gives_a_start_near_the_truth(library, renderer):
+    sedan = library.load("sedan")
+    truth = view(sedan, 100.0, 8.0, focal=1200.0, distance=11.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=6)
+    region = find_vehicle(photo)
+    cands = wheel_candidates(detect_wheels(photo, region), sedan, 640, 480)
+    assert cands and all(c.source == "wheels" for c in cands)
+    best = score_cameras(photo, region, sedan, cands, renderer)[0]
+    assert rotation_angle(best.camera.R, truth.R) < 20.0
+
+
+@pytest.mark.parametrize(
+    "model_id,azimuth,elevation",
+    [("sedan", 35.0, 12.0), ("hatchback", 140.0, 20.0), ("van", 200.0, 8.0), ("pickup", 300.0, 25.0),
+     ("suv", 0.0, 15.0)],
+)
+def test_view_search_returns_a_candidate_within_20_degrees(library, renderer, model_id, azimuth, elevation):
+    model = library.load(model_id)
+    truth = view(model, azimuth, elevation, focal=900.0, distance=10.0)
+    photo, _ = synthesize(model.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=7)
+    cands = distinct(view_search(photo, find_vehicle(photo), model, renderer), 4)
+    assert min(rotation_angle(c.camera.R, truth.R) for c in cands) < 20.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model_id,azimuth,elevation", [("sedan", 120.0, 15.0), ("van", 320.0, 20.0)])
+def test_registers_without_any_hint(library, renderer, model_id, azimuth, elevation):
+    model = library.load(model_id)
+    truth = view(model, azimuth, elevation, focal=1000.0, distance=11.0)
+    photo, _ = synthesize(model.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=8)
+    result = register(photo, model, renderer=renderer)
+    assert projection_error(model, result.camera, truth) < 2.0
+    assert result.start_source == "none" and result.start_method in ("view-search", "wheels")
+    assert not result.failed and result.confidence is not None and result.confidence >= 0.5
+    d = result.to_dict()
+    assert d["failed"] is False and d["start"]["candidates"] and d["checks"]["region_iou"] > 0.9
+
+
+@pytest.mark.slow
+def test_a_photo_without_a_vehicle_is_flagged_failed(library, renderer):
+    rng = np.random.default_rng(4)
+    photo = (np.clip(_background(480, 640, rng), 0, 1) * 255).astype(np.uint8)
+    result = register(photo, library.load("sedan"), renderer=renderer,
+                      options=RegistrationOptions(starts=2, refine=1, max_evaluations=150))
+    assert result.failed and result.confidence is not None and result.confidence < 0.5
+
+
+@pytest.mark.slow
+def test_identification_picks_the_right_body_type(library, renderer):
+    candidates = [library.load(m) for m in ("sedan", "van", "pickup")]
+    options = RegistrationOptions(starts=3, refine=1, max_size=320, screen_size=160)
+    for model, azimuth in zip(candidates, (60.0, 230.0, 120.0)):
+        truth = view(model, azimuth, 12.0, focal=500.0, distance=11.0, width=320, height=240)
+        photo, _ = synthesize(model.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=9)
+        ranking = identify(photo, candidates, options=options, renderer=renderer)
+        assert ranking[0].model is model, [(c.model.info.id, c.score) for c in ranking]
+        assert ranking[0].score < ranking[1].score
+
+
+@pytest.mark.slow
+def test_cli_identifies_without_a_hint(library, renderer, tmp_path, capsys):
+    van = library.load("van")
+    truth = view(van, 60.0, 10.0, focal=500.0, distance=11.0, width=320, height=240)
+    photo, _ = synthesize(van.mesh, truth, renderer=renderer, seed=10)
+    save_png(tmp_path / "photo.png", photo)
+    out = tmp_path / "result.json"
+    code = main(["register", str(tmp_path / "photo.png"), "--model", "sedan,van", "--out", str(out),
+                 "--overlay", str(tmp_path / "overlay.png"), "--starts", "3", "--refine", "1"])
+    assert code == 0, capsys.readouterr().err
+    data = json.loads(out.read_text())
+    assert data["model"]["id"] == "van" and [c["model"] for c in data["identification"]] == ["van", "sedan"]
+    assert data["start"]["source"] == "none" and data["failed"] is False and data["confidence"] >= 0.5
+    assert projection_error(van, Camera.from_dict(data["camera"]), truth) < 2.0
+    assert (tmp_path / "overlay.png").stat().st_size > 0
+    assert main(["register", str(tmp_path / "photo.png"), "--model", "sedan,bus", "--out", str(out)]) == 2
+    assert "bus" in capsys.readouterr().err
