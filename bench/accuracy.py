@@ -14,10 +14,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import perturbed, projection_error, table, write_report
+from common import perturbed, photoreal_cases, projection_error, table, write_report
 
 from vehicle_pose.camera import Camera, look_at_camera
-from vehicle_pose.library import ModelLibrary, model_from_mesh
+from vehicle_pose.library import ModelLibrary
 from vehicle_pose.photo import load_photo
 from vehicle_pose.pipeline import RegistrationOptions, register
 from vehicle_pose.render import Renderer
@@ -89,26 +89,19 @@ def losses(n: int) -> dict:
 
 
 def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracle: bool = False) -> dict:
-    catalogue = {m["id"]: m for m in json.loads((shared / "models.json").read_text())}
-    models, renderer, out = {}, Renderer(), []
-    for case in sorted((shared / "cases").iterdir()):
-        gt = json.loads((case / "gt.json").read_text())
-        entry = catalogue[gt["model"]]
-        if entry["id"] not in models:
-            texture = [shared / entry["texture_dir"]] if entry.get("texture_dir") else []
-            models[entry["id"]] = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"],
-                                                  units="m", meters_per_unit=entry["meters_per_unit"], texture_dirs=tuple(texture))
-        model = models[entry["id"]]
+    renderer, out = Renderer(), []
+    for case, gt, model in photoreal_cases(shared):
         truth = Camera.from_dict(gt)
         start = Camera.from_dict(json.loads((case / start_name).read_text()))
         mask = np.load(case / "mask.npy") if oracle else None
         r = run_one(model, renderer, load_photo(case / "photo.jpg"), truth, start, options, foreground=mask)
         r["case"] = case.name
-        r["model"] = entry["id"]
+        r["model"] = model.info.id
         out.append(r)
-        print(f"{case.name} {entry['id']:18s} start {r['start_error_px']:7.1f} px -> {r['error_px']:7.2f} px "
+        print(f"{case.name} {model.info.id:18s} start {r['start_error_px']:7.1f} px -> {r['error_px']:7.2f} px "
               f"loss {r['loss']:.4f} {r['evaluations']} evals {r['seconds']:.2f} s", flush=True)
-    rows = [summarise({"start": start_name, "model": mid}, [r for r in out if r["model"] == mid]) for mid in models]
+    ids = sorted({r["model"] for r in out})
+    rows = [summarise({"start": start_name, "model": mid}, [r for r in out if r["model"] == mid]) for mid in ids]
     rows.append(summarise({"start": start_name, "model": "all"}, out))
     print(table(rows, list(rows[0])))
     return {"rows": rows, "runs": out}

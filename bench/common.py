@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vehicle_pose.camera import Camera
+from vehicle_pose.library import VehicleModel, model_from_mesh
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -69,3 +70,19 @@ def perturbed(truth: Camera, rng: np.random.Generator, degrees: float) -> Camera
     K[0, 0] *= k
     K[1, 1] *= k
     return Camera(K, rot @ truth.R, t, truth.width, truth.height)
+
+
+def photoreal_cases(shared: Path):
+    """Yield ``(case folder, gt dict, model)`` for each case of ``shared/cases``, sorted; each
+    model of ``shared/models.json`` is loaded once (axes, scale and textures as listed)."""
+    catalogue = {m["id"]: m for m in json.loads((shared / "models.json").read_text())}
+    models: dict[str, VehicleModel] = {}
+    for case in sorted((shared / "cases").iterdir()):
+        gt = json.loads((case / "gt.json").read_text())
+        entry = catalogue[gt["model"]]
+        if entry["id"] not in models:
+            texture = [shared / entry["texture_dir"]] if entry.get("texture_dir") else []
+            models[entry["id"]] = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"],
+                                                  units="m", meters_per_unit=entry["meters_per_unit"],
+                                                  texture_dirs=tuple(texture))
+        yield case, gt, models[entry["id"]]

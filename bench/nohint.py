@@ -1,7 +1,7 @@
 """No-hint registration: success, failure-flag quality and time, with no start camera and no box.
 
 Usage: .venv/bin/python bench/nohint.py [--part synthetic|photoreal|identify|all] [--cases N]
-       [--shared ../shared/bench] [--option KEY=VALUE ...]
+       [--shared ../shared/bench] [--option KEY=VALUE ...] [--oracle-mask] [--tag TAG]
 
 synthetic: the five shipped body types at random views (azimuth 0-360, elevation 3-30 degrees,
 focal 0.8-2.5 image widths, the vehicle 40-80 % of the width, fully in view), the four synthetic
@@ -15,17 +15,16 @@ results flagged / wrong results. Writes bench/results/nohint_<part>.json.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 from accuracy import parse_options
-from common import projection_error, table, write_report
+from common import photoreal_cases, projection_error, table, write_report
 
 from vehicle_pose.camera import Camera
 from vehicle_pose.identify import identify
-from vehicle_pose.library import ModelLibrary, model_from_mesh
+from vehicle_pose.library import ModelLibrary
 from vehicle_pose.photo import load_photo
 from vehicle_pose.pipeline import RegistrationOptions, register
 from vehicle_pose.render import Renderer
@@ -64,8 +63,8 @@ def synthetic_cases(n: int, seed: int = 7):
         yield model, renderer, truth, photo, view
 
 
-def _run(model, renderer, photo, truth, options) -> dict:
-    res = register(photo, model, options=options, renderer=renderer)
+def _run(model, renderer, photo, truth, options, foreground=None) -> dict:
+    res = register(photo, model, options=options, renderer=renderer, foreground=foreground)
     return {"error_px": projection_error(model.mesh.vertices, res.camera, truth), "seconds": res.seconds,
             "failed": res.failed, "confidence": res.confidence, "checks": res.checks, "method": res.start_method,
             "loss": res.loss}
@@ -90,23 +89,15 @@ def synthetic(n: int, options: RegistrationOptions) -> dict:
     return {"rows": rows, "runs": runs}
 
 
-def photoreal(shared: Path, options: RegistrationOptions) -> dict:
-    catalogue = {m["id"]: m for m in json.loads((shared / "models.json").read_text())}
-    models, renderer, runs = {}, Renderer(), []
-    for case in sorted((shared / "cases").iterdir()):
-        gt = json.loads((case / "gt.json").read_text())
-        entry = catalogue[gt["model"]]
-        if entry["id"] not in models:
-            texture = [shared / entry["texture_dir"]] if entry.get("texture_dir") else []
-            models[entry["id"]] = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"],
-                                                  units="m", meters_per_unit=entry["meters_per_unit"],
-                                                  texture_dirs=tuple(texture))
-        model = models[entry["id"]]
-        r = _run(model, renderer, load_photo(case / "photo.jpg"), Camera.from_dict(gt), options)
-        r |= {"case": case.name, "model": entry["id"]}
-        _print(r, f"{case.name} {entry['id']}")
+def photoreal(shared: Path, options: RegistrationOptions, oracle: bool = False) -> dict:
+    renderer, runs = Renderer(), []
+    for case, gt, model in photoreal_cases(shared):
+        mask = np.load(case / "mask.npy") if oracle else None
+        r = _run(model, renderer, load_photo(case / "photo.jpg"), Camera.from_dict(gt), options, mask)
+        r |= {"case": case.name, "model": model.info.id}
+        _print(r, f"{case.name} {model.info.id}")
         runs.append(r)
-    rows = [summarise({"model": mid}, [r for r in runs if r["model"] == mid]) for mid in models]
+    rows = [summarise({"model": mid}, [r for r in runs if r["model"] == mid]) for mid in sorted({r["model"] for r in runs})]
     rows.append(summarise({"model": "all"}, runs))
     print(table(rows, list(rows[0])))
     return {"rows": rows, "runs": runs}
@@ -144,6 +135,8 @@ def main() -> None:
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "bench")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a RegistrationOptions field, e.g. starts=6 (repeatable)")
+    ap.add_argument("--oracle-mask", action="store_true",
+                    help="photoreal: give the true mask as the region and foreground (a ceiling)")
     ap.add_argument("--tag", default="", help="suffix of the report's name")
     args = ap.parse_args()
     options = parse_options(args.option)
@@ -152,7 +145,8 @@ def main() -> None:
         print(write_report("nohint_synthetic" + suffix, synthetic(args.cases, options) | {"options": vars(options)}))
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
-            print(write_report("nohint_photoreal" + suffix, photoreal(args.shared, options) | {"options": vars(options)}))
+            data = photoreal(args.shared, options, oracle=args.oracle_mask)
+            print(write_report("nohint_photoreal" + suffix, data | {"options": vars(options), "oracle_mask": args.oracle_mask}))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")
     if args.part in ("identify", "all"):

@@ -52,7 +52,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--forward", default="+x", help="mesh forward axis, for a mesh path (default +x)")
     r.add_argument("--units", default="m", choices=sorted(UNITS), help="mesh units, for a mesh path")
     r.add_argument("--models-dir", help="model library folder (default: this checkout's vehicle_models/)")
-    r.add_argument("--loss", default="invariant", choices=sorted(LOSSES))
+    r.add_argument("--loss", default=RegistrationOptions.loss, choices=sorted(LOSSES))
     r.add_argument("--optimizer", default="nelder-mead", choices=sorted(OPTIMIZERS))
     r.add_argument("--parametrization", default="view", choices=PARAMETRIZATIONS,
                    help="search coordinates: a view perturbation (default) or the paper's theta")

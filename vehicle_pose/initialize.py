@@ -32,6 +32,7 @@ __all__ = [
     "parse_bbox",
     "fit_to_box",
     "view_camera",
+    "refocus",
     "score_cameras",
     "view_search",
     "distinct",
@@ -138,6 +139,15 @@ def view_camera(
         R = Rotation.from_euler("z", roll, degrees=True).as_matrix() @ cam.R
         cam = Camera(cam.K, R, R @ (cam.R.T @ cam.t), width, height)
     return fit_to_box(cam, model.mesh.sample_points(600), centre, box)
+
+
+def refocus(camera: Camera, focal: float, model: VehicleModel, box: Box) -> Camera:
+    """The camera with focal length ``focal`` (pixels), moved so the model still fills ``box``."""
+    K = camera.K.copy()
+    K[0, 0] *= focal / camera.K[0, 0]
+    K[1, 1] *= focal / camera.K[1, 1]
+    cam = Camera(K, camera.R, camera.t, camera.width, camera.height)
+    return fit_to_box(cam, model.mesh.sample_points(600), model.mesh.sphere[0], box)
 
 
 class _Scorer:
