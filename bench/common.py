@@ -6,6 +6,7 @@ import json
 import platform
 import subprocess
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -82,7 +83,7 @@ def photoreal_cases(shared: Path):
         entry = catalogue[gt["model"]]
         if entry["id"] not in models:
             texture = [shared / entry["texture_dir"]] if entry.get("texture_dir") else []
-            models[entry["id"]] = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"],
-                                                  units="m", meters_per_unit=entry["meters_per_unit"],
-                                                  texture_dirs=tuple(texture))
+            m = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"], units="m",
+                                meters_per_unit=entry["meters_per_unit"], texture_dirs=tuple(texture))
+            models[entry["id"]] = VehicleModel(replace(m.info, id=entry["id"], name=entry["id"]), m.mesh)
         yield case, gt, models[entry["id"]]

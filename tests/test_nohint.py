@@ -16,8 +16,8 @@ from vehicle_pose.initialize import distinct, rotation_angle, score_cameras, vie
 from vehicle_pose.library import ModelLibrary, install_model
 from vehicle_pose.mesh import KINDS
 from vehicle_pose.overlay import save_png
-from vehicle_pose.pipeline import RegistrationOptions, register
-from vehicle_pose.region import find_vehicle
+from vehicle_pose.pipeline import RegistrationOptions, confidence, register
+from vehicle_pose.region import VehicleRegion, find_vehicle
 from vehicle_pose.synth import LIGHTINGS, _background, synthesize
 from vehicle_pose.wheels import detect_wheels, wheel_candidates
 
@@ -64,6 +64,31 @@ def test_model_specs_resolve(library):
 def test_auto_is_not_a_model_id(tmp_path, library):
     with pytest.raises(ModelError, match="auto"):
         install_model(tmp_path, "auto", library.info("sedan").mesh_path)
+
+
+@pytest.mark.parametrize(
+    "checks,credible",
+    [
+        ({"loss": 0.05, "margin": 0.5, "agreement": 0.0, "region_iou": 0.95}, True),
+        ({"loss": 0.05, "margin": 0.0, "agreement": 0.67, "region_iou": 0.95}, True),  # starts agree
+        ({"loss": 0.25, "margin": 0.5, "agreement": 0.0, "region_iou": 0.95}, False),  # poor fit
+        ({"loss": 0.05, "margin": 0.05, "agreement": 0.0, "region_iou": 0.95}, False),  # a rival as good
+        ({"loss": 0.05, "margin": 0.5, "agreement": 0.0, "region_iou": 0.55}, False),  # not the vehicle
+        ({"loss": 0.05, "margin": 0.5}, False),  # no region measured
+    ],
+)
+def test_confidence_needs_fit_uniqueness_and_region(checks, credible):
+    value = confidence(checks)
+    assert 0.0 <= value <= 1.0 and (value >= 0.5) == credible
+
+
+def test_region_from_mask():
+    mask = np.zeros((40, 60), bool)
+    mask[10:20, 5:30] = True
+    region = VehicleRegion.from_mask(mask)
+    assert region.box == (5.0, 10.0, 29.0, 19.0) and region.area_fraction == mask.mean()
+    assert region.resized(120, 80).box == (10.0, 20.0, 58.0, 38.0)
+    assert VehicleRegion.from_mask(np.zeros((4, 4), bool)).mask.all()
 
 
 def test_vehicle_region_without_hint(library, renderer):

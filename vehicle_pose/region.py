@@ -32,6 +32,15 @@ class VehicleRegion:
         """Share of the photo covered by the region."""
         return float(self.mask.mean())
 
+    @classmethod
+    def from_mask(cls, mask: npt.NDArray[np.bool_]) -> VehicleRegion:
+        """The region of a known mask (an empty mask gives the whole photo)."""
+        mask = mask.astype(bool)
+        if not mask.any():
+            mask = np.ones_like(mask)
+        ys, xs = np.nonzero(mask)
+        return cls(mask, (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())))
+
     def resized(self, width: int, height: int) -> VehicleRegion:
         """The region for the photo resized to ``width`` x ``height``."""
         H, W = self.mask.shape
@@ -126,7 +135,4 @@ def find_vehicle(
             region = second if second.sum() >= 0.3 * first.sum() else first
         else:
             region = first
-    full = cv2.resize(region.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0
-    ys, xs = np.nonzero(full)
-    box = (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max()))
-    return VehicleRegion(full, box)
+    return VehicleRegion.from_mask(cv2.resize(region.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0)
