@@ -111,8 +111,11 @@ class RegistrationOptions:
     region_borders : tuple of (float, float)
         With no hint at all, the vehicle's region is found by GrabCut from a rectangle this far
         (fractions of width and height) inside the photo's border, once per entry; the region
-        whose best search view fits it best is used. A region that reaches its rectangle (the
-        vehicle was cut) is dropped, except the first.
+        whose best search view fits it best is used. The further rectangles are tried only
+        when the first region's best view scores above ``region_fit``; a region that reaches
+        its rectangle (the vehicle was cut) is dropped.
+    region_fit : float
+        View-search score (1 - IoU + loss / max) under which the first region is kept as it is.
     min_confidence : float
         A pose found without a start camera whose confidence is lower is flagged ``failed``.
     """
@@ -139,6 +142,7 @@ class RegistrationOptions:
     wheels: bool = True
     start_focals: tuple[float, ...] = (0.8, 3.0)
     region_borders: tuple[tuple[float, float], ...] = ((0.08, 0.1), (0.18, 0.2), (0.28, 0.3))
+    region_fit: float = 0.3
     min_confidence: float = 0.5
 
 
@@ -478,15 +482,17 @@ def register(
         elif rect is not None:
             regions = [find_vehicle(work, rect=rect)]  # type: ignore[arg-type]
         else:
-            regions = [find_vehicle(work, border=b) for b in options.region_borders]
-            # A narrower rectangle that the region reaches has cut the vehicle: drop it.
-            regions = regions[:1] + [
-                r for r, (bx, by) in zip(regions[1:], options.region_borders[1:])
-                if r.box[0] > (bx + 0.01) * Wf and r.box[2] < (0.99 - bx) * Wf
-                and r.box[1] > (by + 0.01) * Hf and r.box[3] < (0.99 - by) * Hf
-            ]
-        # The region hypothesis whose best view fits it best wins.
+            regions = [find_vehicle(work, border=options.region_borders[0])]
+        # The region hypothesis whose best view fits it best wins; narrower start rectangles are
+        # tried only when the first region is not already well explained by a view.
         searched = [(view_search(work, reg, model, renderer, max_faces=lod_faces), reg) for reg in regions]
+        if fg is None and rect is None and searched[0][0][0].score > options.region_fit:
+            for bx, by in options.region_borders[1:]:
+                reg = find_vehicle(work, border=(bx, by))
+                # A region that reaches its rectangle has been cut: the vehicle is larger.
+                if (reg.box[0] > (bx + 0.01) * Wf and reg.box[2] < (0.99 - bx) * Wf
+                        and reg.box[1] > (by + 0.01) * Hf and reg.box[3] < (0.99 - by) * Hf):
+                    searched.append((view_search(work, reg, model, renderer, max_faces=lod_faces), reg))
         cands, region = min(searched, key=lambda e: e[0][0].score)
         if options.wheels:
             ellipses = detect_wheels(work, region, max_count=4)
