@@ -112,8 +112,8 @@ class RegistrationOptions:
         With no hint at all, the vehicle's region is found by GrabCut from a rectangle this far
         (fractions of width and height) inside the photo's border, once per entry; the region
         whose best search view fits it best is used. The further rectangles are tried only
-        when the first region's best view scores above ``region_fit``; a region that reaches
-        its rectangle (the vehicle was cut) is dropped.
+        when the first region's best view scores above ``region_fit``. (Dropping a narrower
+        region that reaches its rectangle, as cut, lost 3 of 20 photoreal cases.)
     region_fit : float
         View-search score (1 - IoU + loss / max) under which the first region is kept as it is.
     min_confidence : float
@@ -487,12 +487,9 @@ def register(
         # tried only when the first region is not already well explained by a view.
         searched = [(view_search(work, reg, model, renderer, max_faces=lod_faces), reg) for reg in regions]
         if fg is None and rect is None and searched[0][0][0].score > options.region_fit:
-            for bx, by in options.region_borders[1:]:
-                reg = find_vehicle(work, border=(bx, by))
-                # A region that reaches its rectangle has been cut: the vehicle is larger.
-                if (reg.box[0] > (bx + 0.01) * Wf and reg.box[2] < (0.99 - bx) * Wf
-                        and reg.box[1] > (by + 0.01) * Hf and reg.box[3] < (0.99 - by) * Hf):
-                    searched.append((view_search(work, reg, model, renderer, max_faces=lod_faces), reg))
+            for border in options.region_borders[1:]:
+                reg = find_vehicle(work, border=border)
+                searched.append((view_search(work, reg, model, renderer, max_faces=lod_faces), reg))
         cands, region = min(searched, key=lambda e: e[0][0].score)
         if options.wheels:
             ellipses = detect_wheels(work, region, max_count=4)
