@@ -1,6 +1,6 @@
 """Per-evaluation cost (render + loss) against image size and mesh size.
 
-Usage: .venv/bin/python bench/speed.py [--repeats N]
+Usage: .venv/bin/python bench/speed.py [--repeats N] [--loss NAME]
 Prints a table and writes bench/results/speed.json.
 """
 
@@ -16,7 +16,7 @@ from common import table, write_report
 from vehicle_pose.camera import look_at_camera
 from vehicle_pose.library import VehicleModel
 from vehicle_pose.loss import make_target
-from vehicle_pose.losses import make_loss
+from vehicle_pose.losses import LOSSES, make_loss
 from vehicle_pose.mesh import load_mesh
 from vehicle_pose.metadata import ModelInfo
 from vehicle_pose.pipeline import RegistrationOptions, _face_budget
@@ -40,6 +40,8 @@ def dense_sedan(target_faces: int, tmp: str) -> VehicleModel:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=30)
+    ap.add_argument("--loss", default=RegistrationOptions.loss, choices=sorted(LOSSES),
+                    help="the loss timed (default: the registration's default)")
     args = ap.parse_args()
     import tempfile
 
@@ -54,7 +56,7 @@ def main() -> None:
                 cam = look_at_camera(centre, [1, 0, 0], [0, 0, 1], azimuth_deg=130, elevation_deg=15,
                                      distance=9.0, focal=900.0 * W / 640, width=W, height=H)
                 photo, mask = synthesize(model.mesh, cam, renderer=renderer)
-                loss = make_loss("invariant", make_target(photo, mask, color=False))
+                loss = make_loss(args.loss, make_target(photo, mask, color=False))
                 lod = model.lod(_face_budget(float(mask.sum()), options))
                 for label, mesh in (("full mesh", model.mesh), ("pipeline LOD", lod)):
                     frame = renderer.render(mesh, cam)
@@ -80,7 +82,7 @@ def main() -> None:
     cols = ["faces", "image", "mesh", "rendered faces", "silhouette px", "render ms", "loss ms", "total ms"]
     print(table(rows, cols))
     gl = renderer.ctx.info
-    print(write_report("speed", {"renderer": gl["GL_RENDERER"], "rows": rows}))
+    print(write_report("speed", {"renderer": gl["GL_RENDERER"], "loss": args.loss, "rows": rows}))
 
 
 if __name__ == "__main__":
