@@ -18,6 +18,7 @@ import numpy.typing as npt
 from .camera import Camera
 from .errors import CameraError, PoseError
 from .initialize import (
+    Box,
     Candidate,
     distinct,
     parse_bbox,
@@ -385,6 +386,54 @@ def confidence(checks: dict[str, float]) -> float:
     return float(np.clip(min(fit, unique, region), 0.0, 1.0))
 
 
+def _search_starts(
+    work: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    rect: Box | None,
+    fg: npt.NDArray[np.bool_] | None,
+    options: RegistrationOptions,
+    renderer: Renderer,
+) -> tuple[list[Candidate], VehicleRegion]:
+    """The vehicle's region and the start poses to screen, best first (docs/engine.md)."""
+    Hf, Wf = work.shape[:2]
+    lod_faces = min(4096, options.min_faces)
+    if fg is not None:
+        regions = [VehicleRegion.from_mask(fg)]
+    elif rect is not None:
+        regions = [find_vehicle(work, rect=rect)]
+    else:
+        regions = [find_vehicle(work, border=options.region_borders[0])]
+    # The region hypothesis whose best view fits it best wins; narrower start rectangles are
+    # tried only when the first region is not already well explained by a view.
+    searched = [(view_search(work, reg, model, renderer, max_faces=lod_faces), reg) for reg in regions]
+    if fg is None and rect is None and searched[0][0][0].score > options.region_fit:
+        for border in options.region_borders[1:]:
+            reg = find_vehicle(work, border=border)
+            searched.append((view_search(work, reg, model, renderer, max_faces=lod_faces), reg))
+    cands, region = min(searched, key=lambda e: e[0][0].score)
+    if options.wheels:
+        ellipses = detect_wheels(work, region, max_count=4)
+        pairs = wheel_candidates(ellipses, model, Wf, Hf)
+        cands += score_cameras(work, region, model, pairs, renderer, max_faces=lod_faces)
+    starts = distinct(cands, options.starts)
+    best = starts[0]
+    if best.source == "view-search":
+        # Front and back (and left and right from behind) are the commonest confusion: the
+        # best view's twin half a turn away is always screened.
+        d = best.detail
+        twin = view_camera(model, d["azimuth"] + 180.0, d["elevation"], -d["roll"], region.box, Wf, Hf,
+                           best.camera.focal)
+        if all(rotation_angle(twin.R, c.camera.R) >= 25.0 for c in starts):
+            starts.append(Candidate(twin, "view-search", detail={**d, "azimuth": (d["azimuth"] + 180.0) % 360,
+                                                                 "roll": -d["roll"], "twin": 1.0}))
+    starts += [
+        replace(starts[0], camera=refocus(starts[0].camera, f * Wf, model, region.box),
+                detail={**starts[0].detail, "focal_widths": f})
+        for f in options.start_focals
+    ]
+    return starts, region
+
+
 def register(
     photo: npt.NDArray[np.uint8],
     model: VehicleModel,
@@ -475,42 +524,9 @@ def register(
         t = time.perf_counter()
         if progress is not None:
             progress("finding the vehicle", 0, float("nan"))
-        rect = None if box is None else tuple(v * Wf / W0 if i % 2 == 0 else v * Hf / H0 for i, v in enumerate(box))
-        lod_faces = min(4096, options.min_faces)
-        if fg is not None:
-            regions = [VehicleRegion.from_mask(fg)]
-        elif rect is not None:
-            regions = [find_vehicle(work, rect=rect)]  # type: ignore[arg-type]
-        else:
-            regions = [find_vehicle(work, border=options.region_borders[0])]
-        # The region hypothesis whose best view fits it best wins; narrower start rectangles are
-        # tried only when the first region is not already well explained by a view.
-        searched = [(view_search(work, reg, model, renderer, max_faces=lod_faces), reg) for reg in regions]
-        if fg is None and rect is None and searched[0][0][0].score > options.region_fit:
-            for border in options.region_borders[1:]:
-                reg = find_vehicle(work, border=border)
-                searched.append((view_search(work, reg, model, renderer, max_faces=lod_faces), reg))
-        cands, region = min(searched, key=lambda e: e[0][0].score)
-        if options.wheels:
-            ellipses = detect_wheels(work, region, max_count=4)
-            pairs = wheel_candidates(ellipses, model, Wf, Hf)
-            cands += score_cameras(work, region, model, pairs, renderer, max_faces=lod_faces)
-        starts = distinct(cands, options.starts)
-        best = starts[0]
-        if best.source == "view-search":
-            # Front and back (and left and right from behind) are the commonest confusion: the
-            # best view's twin half a turn away is always screened.
-            d = best.detail
-            twin = view_camera(model, d["azimuth"] + 180.0, d["elevation"], -d["roll"], region.box, Wf, Hf,
-                               best.camera.focal)
-            if all(rotation_angle(twin.R, c.camera.R) >= 25.0 for c in starts):
-                starts.append(Candidate(twin, "view-search", detail={**d, "azimuth": (d["azimuth"] + 180.0) % 360,
-                                                                     "roll": -d["roll"], "twin": 1.0}))
-        starts += [
-            replace(starts[0], camera=refocus(starts[0].camera, f * Wf, model, region.box),
-                    detail={**starts[0].detail, "focal_widths": f})
-            for f in options.start_focals
-        ]
+        sx, sy = Wf / W0, Hf / H0
+        rect: Box | None = None if box is None else (box[0] * sx, box[1] * sy, box[2] * sx, box[3] * sy)
+        starts, region = _search_starts(work, model, rect, fg, options, renderer)
         timings["start"] = time.perf_counter() - t
 
         # Screen every start on a reduced photo, then refine the best distinct ones.
