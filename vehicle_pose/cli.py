@@ -15,8 +15,8 @@ from pathlib import Path
 
 from . import __version__
 from .camera import Camera
-from .errors import PoseError, RenderError, VehiclePoseError
-from .identify import identify
+from .errors import RenderError, VehiclePoseError
+from .identify import register_or_identify
 from .library import ModelLibrary, VehicleModel, model_from_mesh
 from .losses import LOSSES
 from .metadata import UNITS
@@ -24,7 +24,7 @@ from .optimize import OPTIMIZERS
 from .overlay import draw_overlay, save_png
 from .parametrize import PARAMETRIZATIONS
 from .photo import load_photo
-from .pipeline import RegistrationOptions, register
+from .pipeline import RegistrationOptions
 
 __all__ = ["main"]
 
@@ -99,15 +99,7 @@ def _register(args: argparse.Namespace) -> int:
         starts=args.starts,
         refine=args.refine,
     )
-    if len(models) == 1:
-        result = register(photo, models[0], init_camera=init, bbox=args.bbox, options=options)
-        data = result.to_dict()
-    else:
-        ranking = identify(photo, models, init_camera=init, bbox=args.bbox, options=options)
-        if ranking[0].result is None:
-            raise PoseError(f"no candidate model could be registered: {ranking[0].error}")
-        result = ranking[0].result
-        data = result.to_dict() | {"identification": [c.to_dict() for c in ranking]}
+    result, data = register_or_identify(photo, models, init_camera=init, bbox=args.bbox, options=options)
     model = result.model
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

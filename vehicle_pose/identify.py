@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -21,7 +22,7 @@ from .library import VehicleModel
 from .pipeline import RegistrationOptions, RegistrationResult, register
 from .render import Renderer
 
-__all__ = ["Identification", "identify", "fit_score"]
+__all__ = ["Identification", "identify", "fit_score", "register_or_identify"]
 
 
 def fit_score(result: RegistrationResult) -> float:
@@ -87,3 +88,28 @@ def identify(
             continue
         out.append(Identification(model, res, fit_score(res)))
     return sorted(out, key=lambda c: c.score)
+
+
+def register_or_identify(
+    photo: npt.NDArray[np.uint8],
+    models: Sequence[VehicleModel],
+    *,
+    init_camera: Camera | None = None,
+    bbox: str | Sequence[float] | None = None,
+    options: RegistrationOptions = RegistrationOptions(),
+    renderer: Renderer | None = None,
+    progress: Callable[[str, int, float], None] | None = None,
+) -> tuple[RegistrationResult, dict[str, Any]]:
+    """Register the one model given, or identify the model among several: the winning
+    registration and its JSON result (with the ranking under ``identification`` when several
+    models were tried). PoseError when no candidate could be registered."""
+    if len(models) == 1:
+        result = register(photo, models[0], init_camera=init_camera, bbox=bbox, options=options,
+                          renderer=renderer, progress=progress)
+        return result, result.to_dict()
+    ranking = identify(photo, models, init_camera=init_camera, bbox=bbox, options=options,
+                       renderer=renderer, progress=progress)
+    best = ranking[0].result
+    if best is None:
+        raise PoseError(f"no candidate model could be registered: {ranking[0].error}")
+    return best, best.to_dict() | {"identification": [c.to_dict() for c in ranking]}

@@ -29,10 +29,9 @@ from vehicle_pose import (
     RegistrationOptions,
     VehiclePoseError,
     decode_photo,
-    register,
 )
-from vehicle_pose.errors import PoseError, RenderError
-from vehicle_pose.identify import identify
+from vehicle_pose.errors import RenderError
+from vehicle_pose.identify import register_or_identify
 from vehicle_pose.overlay import draw_overlay, encode_image
 
 log = logging.getLogger(__name__)
@@ -114,15 +113,8 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     init = Camera.from_dict(job.init_camera) if job.init_camera else None
     options = RegistrationOptions(**job.options)
     progress = _Progress(job.id, settings.progress_interval_s)
-    if len(models) == 1:
-        result = register(photo, models[0], init_camera=init, bbox=job.bbox, options=options, progress=progress)
-        data = result.to_dict()
-    else:
-        ranking = identify(photo, models, init_camera=init, bbox=job.bbox, options=options, progress=progress)
-        if ranking[0].result is None:
-            raise PoseError(f"no candidate model could be registered: {ranking[0].error}")
-        result = ranking[0].result
-        data = result.to_dict() | {"identification": [c.to_dict() for c in ranking]}
+    result, data = register_or_identify(photo, models, init_camera=init, bbox=job.bbox, options=options,
+                                        progress=progress)
     model = result.model
     overlay = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels)
     overlay_key, thumb_key = f"overlays/{job.id}.png", f"thumbnails/{job.id}.jpg"
