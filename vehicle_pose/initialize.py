@@ -21,6 +21,7 @@ from .camera import Camera, look_at_camera
 from .errors import CameraError
 from .library import VehicleModel
 from .loss import InvariantLoss, make_target
+from .losses import SilhouetteIoULoss
 from .metadata import parse_axis
 from .region import VehicleRegion
 from .render import Renderer
@@ -159,18 +160,15 @@ class _Scorer:
         s = min(1.0, size / max(W, H))
         self.w, self.h = max(8, round(W * s)), max(8, round(H * s))
         small = cv2.resize(rgb, (self.w, self.h), interpolation=cv2.INTER_AREA)
-        self.region = region.resized(self.w, self.h).mask
-        self.area = float(self.region.sum())
-        self.loss = InvariantLoss(make_target(small, self.region, color=False))
+        target = make_target(small, region.resized(self.w, self.h).mask, color=False)
+        self.loss = InvariantLoss(target)
+        self.miss = SilhouetteIoULoss(target)
         self.mesh = model.lod(max_faces)
         self.renderer = renderer
 
     def __call__(self, camera: Camera) -> tuple[float, float, float]:
         frame = self.renderer.render(self.mesh, camera.scaled(self.w, self.h))
-        cov = frame.coverage
-        inter = float((cov & self.region).sum())
-        union = float(cov.sum()) + self.area - inter
-        iou = inter / union if union > 0 else 0.0
+        iou = 1.0 - self.miss(frame)
         loss = float(self.loss(frame))
         return (1.0 - iou) + loss / self.loss.max_value(5), iou, loss
 

@@ -15,6 +15,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from .segment import disk
+
 __all__ = ["VehicleRegion", "find_vehicle", "largest_component"]
 
 Box = tuple[float, float, float, float]
@@ -62,10 +64,6 @@ def largest_component(mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
     filled = np.zeros_like(comp)
     cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
     return filled.astype(bool)
-
-
-def _disk(radius: int) -> npt.NDArray[np.uint8]:
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
 def find_vehicle(
@@ -122,8 +120,8 @@ def find_vehicle(
     else:
         # Second pass seeded by the first answer: its core is certain, a band around it open.
         r = max(2, round(0.04 * float(np.sqrt(first.sum()))))
-        grown = cv2.dilate(first.astype(np.uint8), _disk(3 * r)).astype(bool)
-        core = cv2.erode(first.astype(np.uint8), _disk(r)).astype(bool)
+        grown = cv2.dilate(first.astype(np.uint8), disk(3 * r)).astype(bool)
+        core = cv2.erode(first.astype(np.uint8), disk(r)).astype(bool)
         seeded = np.full((h, w), cv2.GC_BGD, np.uint8)
         seeded[grown] = cv2.GC_PR_BGD
         seeded[first] = cv2.GC_PR_FGD

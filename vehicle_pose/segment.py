@@ -12,10 +12,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["grabcut_foreground"]
+__all__ = ["grabcut_foreground", "disk"]
 
 
-def _disk(radius: int) -> npt.NDArray[np.uint8]:
+def disk(radius: int) -> npt.NDArray[np.uint8]:
+    """A disk-shaped structuring element of the given radius (pixels) for OpenCV morphology."""
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
@@ -66,8 +67,8 @@ def grabcut_foreground(
         crop = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
         crop_sil = cv2.resize(crop_sil, size, interpolation=cv2.INTER_NEAREST)
     ms = max(1, int(round(m * scale)))
-    grown = cv2.dilate(crop_sil, _disk(ms)).astype(bool)
-    shrunk = cv2.erode(crop_sil, _disk(ms)).astype(bool)
+    grown = cv2.dilate(crop_sil, disk(ms)).astype(bool)
+    shrunk = cv2.erode(crop_sil, disk(ms)).astype(bool)
     inside = crop_sil.astype(bool)
     mask = np.full(crop_sil.shape, cv2.GC_BGD, np.uint8)
     mask[grown] = cv2.GC_PR_BGD
@@ -85,7 +86,7 @@ def grabcut_foreground(
     fg = ((mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD)).astype(np.uint8)
     if fg.sum() < 0.3 * inside.sum():
         return fallback
-    fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, _disk(max(1, ms // 2)))
+    fg = cv2.morphologyEx(fg, cv2.MORPH_CLOSE, disk(max(1, ms // 2)))
     out = np.zeros((H, W), bool)
     out[y0:y1, x0:x1] = cv2.resize(fg, (x1 - x0, y1 - y0), interpolation=cv2.INTER_NEAREST) > 0
     return out

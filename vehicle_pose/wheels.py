@@ -25,6 +25,7 @@ from .library import VehicleModel
 from .metadata import parse_axis
 from .pose import Theta, theta_to_camera
 from .region import VehicleRegion
+from .segment import disk
 
 __all__ = ["Ellipse", "detect_wheels", "wheel_candidates"]
 
@@ -116,8 +117,7 @@ def detect_wheels(
         dark = ((gray <= thr) & allowed).astype(np.uint8)
         # Openings of growing size cut a tyre loose from the dark wheel arch or shadow it touches.
         for radius in (1, 3, 6):
-            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-            opened = cv2.morphologyEx(dark, cv2.MORPH_OPEN, kernel)
+            opened = cv2.morphologyEx(dark, cv2.MORPH_OPEN, disk(radius))
             blobs += cv2.findContours(opened, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
     for c in blobs:
         if len(c) < 12:
