@@ -13,7 +13,7 @@ from vehicle_pose.cli import main
 from vehicle_pose.errors import ModelError, UnknownModelError
 from vehicle_pose.identify import identify
 from vehicle_pose.initialize import distinct, rotation_angle, score_cameras, view_search
-from vehicle_pose.library import ModelLibrary, install_model
+from vehicle_pose.library import LOD_AGREEMENT, ModelLibrary, install_model
 from vehicle_pose.mesh import KINDS
 from vehicle_pose.overlay import save_png
 from vehicle_pose.pipeline import RegistrationOptions, confidence, register
@@ -43,7 +43,8 @@ def test_library_ships_five_distinct_body_types_with_material_groups(library):
         kinds = {p.kind for p in model.mesh.parts}
         assert {"body", "glass", "tyre", "wheel", "light"} <= kinds <= set(KINDS)
         lod = model.lod(2048)
-        assert lod.n_faces <= 2600 and model.lod(2048) is lod
+        assert lod.n_faces <= 4200 and model.lod(2048) is lod
+        assert model.mesh.outline_agreement(lod) >= LOD_AGREEMENT
         extents.append(model.mesh.bounds[1] - model.mesh.bounds[0])
     extents = np.array(extents)
     # Distinct shapes: every pair differs by at least 10 cm in length, width or height.

@@ -22,6 +22,10 @@ from .metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_ax
 __all__ = ["AUTO", "VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
 
 
+LOD_AGREEMENT = 0.98
+"""Lowest outline IoU (256-pixel orthographic views) a level of detail must keep."""
+
+
 def default_library_root() -> Path:
     """The ``vehicle_models/`` folder of this checkout."""
     return Path(__file__).resolve().parents[1] / "vehicle_models"
@@ -41,11 +45,20 @@ class VehicleModel:
         return self.info.wheels
 
     def lod(self, max_faces: int) -> Mesh:
-        """The mesh decimated to about ``max_faces`` faces (the mesh itself when smaller)."""
+        """The coarsest mesh of about ``max_faces`` faces or more that keeps the model's outline.
+
+        The mesh is decimated to ``max_faces``; when the decimation's outline differs from the
+        full mesh's (IoU below :data:`LOD_AGREEMENT` along any of 14 directions, e.g. a CAD
+        soup of thin shells that the simplifier tears), the budget is doubled until it holds,
+        up to the full mesh. Levels are computed once per model.
+        """
         if self.mesh.n_faces <= max_faces:
             return self.mesh
         if max_faces not in self._lods:
-            self._lods[max_faces] = self.mesh.decimated(max_faces)
+            mesh = self.mesh.decimated(max_faces)
+            if self.mesh.outline_agreement(mesh) < LOD_AGREEMENT:
+                mesh = self.lod(2 * max_faces)
+            self._lods[max_faces] = mesh
         return self._lods[max_faces]
 
 

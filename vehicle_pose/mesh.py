@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 import trimesh
@@ -130,7 +131,12 @@ class Mesh:
         return v[np.random.default_rng(seed).choice(len(v), count, replace=False)]
 
     def decimated(self, max_faces: int) -> Mesh:
-        """A coarser copy with at most about ``max_faces`` faces; textures folded into albedo."""
+        """A coarser copy with at most about ``max_faces`` faces; textures folded into albedo.
+
+        Coincident vertices are merged first: CAD meshes often come as triangle soups (or are
+        split along creases for shading), and a quadric simplifier cannot collapse the edges of
+        a soup without tearing holes in it.
+        """
         if self.n_faces <= max_faces:
             return self
         import fast_simplification
@@ -142,8 +148,10 @@ class Mesh:
             if len(p.faces) < 64:
                 parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
                 continue
+            merged = trimesh.Trimesh(p.vertices, p.faces, process=True)
             pts, tris = fast_simplification.simplify(
-                p.vertices.astype(np.float64), p.faces.astype(np.int64), target_reduction=1.0 - ratio
+                np.asarray(merged.vertices, np.float64), np.asarray(merged.faces, np.int64),
+                target_reduction=1.0 - ratio,
             )
             if len(tris) == 0:
                 continue
@@ -153,6 +161,43 @@ class Mesh:
                 Part(p.name, p.kind, verts, normals, faces, np.full(len(verts), albedo, np.float32))
             )
         return Mesh(tuple(parts), source=f"{self.source} (decimated to {max_faces})")
+
+    def outlines(self, size: int = 256, frame: tuple[npt.NDArray[np.float64], float] | None = None) -> npt.NDArray[np.bool_]:
+        """Orthographic silhouettes (14, size, size) along the 6 axes and 8 diagonals.
+
+        Drawn on the CPU (no OpenGL) within ``frame`` = (centre, radius), the mesh's enclosing
+        sphere by default; :meth:`outline_agreement` compares two meshes on the same frame.
+        """
+        centre, radius = self.sphere if frame is None else frame
+        dirs = [np.eye(3)[i] * s for i in range(3) for s in (1.0, -1.0)]
+        dirs += [np.array(d) / np.sqrt(3.0) for d in itertools.product((1.0, -1.0), repeat=3)]
+        verts = self.vertices - centre
+        offsets = np.cumsum([0] + [len(p.vertices) for p in self.parts])
+        faces = np.concatenate([p.faces.astype(np.int64) + o for p, o in zip(self.parts, offsets)])
+        out = np.zeros((len(dirs), size, size), np.uint8)
+        shift = 4
+        scale = (size / 2.0) / radius * (1 << shift)
+        for k, d in enumerate(dirs):
+            a = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
+            a /= np.linalg.norm(a)
+            b = np.cross(d, a)
+            uv = np.stack([verts @ a, verts @ b], axis=1) * scale + (size / 2.0) * (1 << shift)
+            # One call per triangle: fillPoly on many polygons fills their overlaps even-odd.
+            for tri in np.round(uv[faces]).astype(np.int32):
+                cv2.fillConvexPoly(out[k], tri, 1, cv2.LINE_8, shift)
+        return out.astype(bool)
+
+    @cached_property
+    def _outlines(self) -> npt.NDArray[np.bool_]:
+        return self.outlines(256)
+
+    def outline_agreement(self, other: Mesh, size: int = 256) -> float:
+        """The lowest IoU of the two meshes' :meth:`outlines` over the 14 directions."""
+        a = self._outlines if size == 256 else self.outlines(size)
+        b = other.outlines(size, frame=self.sphere)
+        inter = (a & b).sum(axis=(1, 2))
+        union = np.maximum((a | b).sum(axis=(1, 2)), 1)
+        return float((inter / union).min())
 
 
 def _mean_albedo(part: Part) -> float:
