@@ -87,6 +87,17 @@ def test_camera_inside_the_bounding_sphere_clips_instead_of_failing(renderer):
     assert frame.pixel_count > 0.9 * 320 * 240
 
 
+def test_many_image_sizes_in_turn_render_without_error(renderer):
+    """The renderer keeps a few framebuffers; replacing them must not break the bound one."""
+    box = mesh_from_trimesh(trimesh.creation.box(extents=(1, 1, 1)))
+    cam = _box_camera(30, 20)
+    counts = {}
+    for w, h in [(320, 240), (160, 120), (200, 150), (100, 75), (452, 339), (320, 240), (90, 70), (452, 339)]:
+        counts[(w, h)] = renderer.render(box, cam.scaled(w, h)).pixel_count
+        assert counts[(w, h)] > 0
+    assert counts[(320, 240)] == renderer.render(box, cam).pixel_count
+
+
 def test_frame_indices_address_the_whole_image():
     labels = np.zeros((3, 4), np.uint8)
     labels[1, 2] = 1

@@ -247,7 +247,7 @@ class Renderer:
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         self.program["tex"].value = 0
         self._meshes: OrderedDict[int, _GpuMesh] = OrderedDict()
-        self._fbos: dict[tuple[int, int], moderngl.Framebuffer] = {}
+        self._fbos: OrderedDict[tuple[int, int], moderngl.Framebuffer] = OrderedDict()
         self._cache_size = cache_size
 
     def _gpu_mesh(self, mesh: Mesh) -> _GpuMesh:
@@ -265,10 +265,10 @@ class Renderer:
     def _fbo(self, width: int, height: int) -> moderngl.Framebuffer:
         fbo = self._fbos.get((width, height))
         if fbo is None:
-            if len(self._fbos) >= 4:
-                for old in self._fbos.values():
-                    old.release()
-                self._fbos.clear()
+            # Keep the framebuffer bound last (the most recent entry): creating a framebuffer
+            # rebinds the previous one, which must still exist.
+            while len(self._fbos) >= 4:
+                self._fbos.pop(next(iter(self._fbos))).release()
             fbo = self.ctx.framebuffer(
                 color_attachments=[
                     self.ctx.renderbuffer((width, height), 4, dtype="f4"),
@@ -277,6 +277,8 @@ class Renderer:
                 depth_attachment=self.ctx.depth_renderbuffer((width, height)),
             )
             self._fbos[(width, height)] = fbo
+        else:
+            self._fbos.move_to_end((width, height))
         return fbo
 
     @staticmethod
