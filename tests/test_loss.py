@@ -7,7 +7,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vehicle_pose.loss import InvariantLoss, PhotoTarget, invariant_loss
+from vehicle_pose.loss import (
+    InvariantLoss,
+    PartsInvariantLoss,
+    PhotoTarget,
+    invariant_loss,
+    part_channels,
+)
 from vehicle_pose.render import Frame
 
 
@@ -125,3 +131,23 @@ def test_non_finite_attributes_score_the_maximum():
     g = rng.normal(size=(50, 4))
     g[3, 1] = np.nan
     assert invariant_loss(rng.normal(size=50), g) == 1.0
+
+
+@pytest.mark.parametrize("n,weighted", [(1, False), (3, False), (1, True), (3, True)])
+def test_parts_loss_equals_the_channel_matrix_form(n, weighted):
+    """The per-material moment gathering gives the loss of the explicit one-hot channels."""
+    rng = np.random.default_rng(11 + n)
+    H, W = 40, 50
+    image = rng.random((H, W, n))
+    weights = rng.random((H, W)) + 0.5 if weighted else np.ones((H, W))
+    target = PhotoTarget(image, weights, np.ones((H, W), bool))
+    attrs = rng.random((20, 30, 4)).astype(np.float32)
+    labels = rng.choice([0, 1, 2, 4, 5], size=(20, 30), p=[0.2, 0.5, 0.15, 0.1, 0.05]).astype(np.uint8)
+    attrs[labels == 0] = 0.0
+    frame = Frame(attrs, labels, 8, 6, W, H)
+    expected = InvariantLoss(target, channels=part_channels)(frame)
+    assert PartsInvariantLoss(target)(frame) == pytest.approx(expected, rel=1e-10, abs=1e-13)
+    # One material only: its indicator is the coverage channel.
+    frame1 = Frame(attrs, (labels > 0).astype(np.uint8), 8, 6, W, H)
+    assert PartsInvariantLoss(target)(frame1) == pytest.approx(InvariantLoss(target, channels=part_channels)(frame1), rel=1e-10)
+    assert PartsInvariantLoss(target)(Frame.empty(W, H)) == float(min(n, 10))

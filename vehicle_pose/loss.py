@@ -25,6 +25,7 @@ __all__ = [
     "PhotoTarget",
     "make_target",
     "InvariantLoss",
+    "PartsInvariantLoss",
     "invariant_loss",
     "loss_from_moments",
     "normal_channels",
@@ -240,4 +241,55 @@ class InvariantLoss:
         cross = left.T @ mf
         s_m, s_fm = cross[0], cross[1:]
         s_mm = mf.T @ mf if self._unit_weights else (mf * left[:, :1]).T @ mf
+        return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
+
+
+class PartsInvariantLoss(InvariantLoss):
+    """The invariant loss on :func:`part_channels`, with the moments gathered per material.
+
+    Equal to ``InvariantLoss(target, channels=part_channels)`` (to rounding), but no (N, m)
+    channel matrix is built: the moments of the one-hot material channels are label counts
+    and per-label sums, and the sums of the commonest label follow from the totals.
+    """
+
+    name = "invariant-parts"
+
+    def __init__(self, target: PhotoTarget, *, min_pixels: int = 16) -> None:
+        super().__init__(target, channels=part_channels, min_pixels=min_pixels)
+
+    def __call__(self, frame: Frame) -> float:
+        k = frame.n_parts
+        m = k + 4
+        if frame.pixel_count < self.min_pixels:
+            return self.max_value(m)
+        idx = frame.covered_flat_indices()
+        a = frame.covered(frame.attrs).astype(np.float64)
+        lab = frame.covered(frame.labels)
+        fw = np.take(self._fw, idx, axis=0)
+        w = None if self._unit_weights else np.take(self._w, idx)
+        aw = a if w is None else a * w[:, None]
+        n = self.n
+        # Per material: summed weight, weighted photo and weighted attributes.
+        sums = np.zeros((k, 1 + n + 4))
+        total = np.concatenate([[float(len(lab)) if w is None else float(w.sum())], fw.sum(0), aw.sum(0)])
+        sizes = np.bincount(lab, minlength=k + 1)[1:]
+        present = np.flatnonzero(sizes)
+        common = int(np.argmax(sizes))
+        for kind in present:
+            if kind == common:
+                continue
+            sel = lab == kind + 1
+            sums[kind] = np.concatenate([[float(sel.sum()) if w is None else float(w[sel].sum())],
+                                         fw[sel].sum(0), aw[sel].sum(0)])
+        sums[common] = total - sums.sum(0)
+        counts = sums[:, 0]
+        s_m = np.concatenate([counts, total[1 + n :]])
+        s_fm = np.empty((n, m))
+        s_fm[:, :k] = sums[:, 1 : 1 + n].T
+        s_fm[:, k:] = fw.T @ a
+        s_mm = np.zeros((m, m))
+        s_mm[:k, :k] = np.diag(counts)
+        s_mm[:k, k:] = sums[:, 1 + n :]
+        s_mm[k:, :k] = s_mm[:k, k:].T
+        s_mm[k:, k:] = aw.T @ a
         return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)

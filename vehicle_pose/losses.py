@@ -12,7 +12,7 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from .loss import InvariantLoss, PhotoTarget, part_channels
+from .loss import InvariantLoss, PartsInvariantLoss, PhotoTarget
 from .render import Frame, headlight
 
 __all__ = ["LOSSES", "make_loss", "headlight_shading"]
@@ -115,7 +115,7 @@ class MutualInformationLoss:
 LOSSES: dict[str, Callable[[PhotoTarget], BoundLoss]] = {
     "invariant": InvariantLoss,
     "invariant-paper": invariant_paper_loss,
-    "invariant-parts": lambda target: InvariantLoss(target, channels=part_channels),
+    "invariant-parts": PartsInvariantLoss,
     "correlation": correlation_loss,
     "squared": SquaredErrorLoss,
     "silhouette-iou": SilhouetteIoULoss,
