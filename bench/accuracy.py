@@ -88,13 +88,16 @@ def losses(n: int) -> dict:
     return {"rows": rows, "runs": runs}
 
 
-def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracle: bool = False) -> dict:
+def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracle: bool = False,
+              use_box: bool = True) -> dict:
     renderer, out = Renderer(), []
     for case, gt, model in photoreal_cases(shared):
         truth = Camera.from_dict(gt)
-        start = Camera.from_dict(json.loads((case / start_name).read_text()))
+        hint = json.loads((case / start_name).read_text())
+        start = Camera.from_dict(hint)
         mask = np.load(case / "mask.npy") if oracle else None
-        r = run_one(model, renderer, load_photo(case / "photo.jpg"), truth, start, options, foreground=mask)
+        box = hint.get("bbox") if use_box else None
+        r = run_one(model, renderer, load_photo(case / "photo.jpg"), truth, start, options, foreground=mask, bbox=box)
         r["case"] = case.name
         r["model"] = model.info.id
         out.append(r)
@@ -129,6 +132,7 @@ def main() -> None:
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a RegistrationOptions field for the photoreal part, e.g. parametrization=view (repeatable)")
     ap.add_argument("--oracle-mask", action="store_true", help="photoreal: give the true mask instead of GrabCut (a ceiling)")
+    ap.add_argument("--no-box", action="store_true", help="photoreal: give only the start camera, not the start file's box")
     ap.add_argument("--tag", default="", help="suffix of the photoreal report's name")
     args = ap.parse_args()
     if args.part in ("sweep", "all"):
@@ -139,9 +143,10 @@ def main() -> None:
         if (args.shared / "cases").is_dir():
             name = "accuracy_photoreal" + ("_hard" if "hard" in args.start else "") + (f"_{args.tag}" if args.tag else "")
             options = parse_options(args.option)
-            data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask)
+            data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask, use_box=not args.no_box)
             data["options"] = vars(options)
             data["oracle_mask"] = args.oracle_mask
+            data["box"] = not args.no_box
             print(write_report(name, data))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")

@@ -28,6 +28,7 @@ def grabcut_foreground(
     max_size: int = 320,
     iterations: int = 4,
     sure_core: bool = False,
+    region: npt.NDArray[np.bool_] | None = None,
 ) -> npt.NDArray[np.bool_]:
     """The vehicle's pixels, seeded by the silhouette of a start pose.
 
@@ -44,6 +45,10 @@ def grabcut_foreground(
     iterations : int, keyword-only
     sure_core : bool, keyword-only
         Mark the shrunk silhouette as certain foreground (for a pose already close).
+    region : (H, W) bool, optional, keyword-only
+        Pixels that may show the vehicle besides the grown silhouette (e.g. the client's box):
+        they are probable background rather than certain background, so GrabCut can claim
+        the parts of the vehicle that a rough start pose misses.
 
     Returns
     -------
@@ -57,17 +62,26 @@ def grabcut_foreground(
     diag = float(np.hypot(xs.max() - xs.min(), ys.max() - ys.min()))
     m = max(2, int(round(margin * diag)))
     pad = 2 * m
+    if region is not None and region.any():
+        ry, rx = np.nonzero(region)
+        ys = np.concatenate([ys, ry[[0, -1]]])
+        xs = np.concatenate([xs, [rx.min(), rx.max()]])
     x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, W)
     y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, H)
     crop_sil = silhouette[y0:y1, x0:x1].astype(np.uint8)
+    crop_region = None if region is None else region[y0:y1, x0:x1].astype(np.uint8)
     crop = rgb[y0:y1, x0:x1]
     scale = min(1.0, max_size / max(crop.shape[:2]))
     if scale < 1.0:
         size = (max(1, round(crop.shape[1] * scale)), max(1, round(crop.shape[0] * scale)))
         crop = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
         crop_sil = cv2.resize(crop_sil, size, interpolation=cv2.INTER_NEAREST)
+        if crop_region is not None:
+            crop_region = cv2.resize(crop_region, size, interpolation=cv2.INTER_NEAREST)
     ms = max(1, int(round(m * scale)))
     grown = cv2.dilate(crop_sil, disk(ms)).astype(bool)
+    if crop_region is not None:
+        grown |= crop_region.astype(bool)
     shrunk = cv2.erode(crop_sil, disk(ms)).astype(bool)
     inside = crop_sil.astype(bool)
     mask = np.full(crop_sil.shape, cv2.GC_BGD, np.uint8)
