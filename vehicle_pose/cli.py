@@ -47,7 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="where to write result.json")
     r.add_argument("--overlay", help="where to write the overlay PNG")
     r.add_argument("--init-camera", help="start camera JSON {K, R, t, width, height}")
-    r.add_argument("--bbox", help="vehicle box X0,Y0,X1,Y1 in pixels (used without --init-camera)")
+    r.add_argument("--bbox", help="vehicle box X0,Y0,X1,Y1 in pixels (the search's start without --init-camera, "
+                   "GrabCut's bound with it)")
     r.add_argument("--up", default="+z", help="mesh up axis, for a mesh path (default +z)")
     r.add_argument("--forward", default="+x", help="mesh forward axis, for a mesh path (default +x)")
     r.add_argument("--units", default="m", choices=sorted(UNITS), help="mesh units, for a mesh path")
