@@ -110,3 +110,29 @@ def test_alternative_losses_run_through_the_same_pipeline(sedan, renderer, loss)
                       options=RegistrationOptions(loss=loss, max_evaluations=80))
     assert result.options.loss == loss
     assert projection_error(sedan, result.camera, truth) < projection_error(sedan, start, truth) + 2.0
+
+
+def test_dolly_zooms_keep_centre_size_and_orientation(sedan):
+    from vehicle_pose.pipeline import _dolly_zooms
+
+    cam = view(sedan, 40.0, 15.0, focal=900.0)
+    centre = sedan.mesh.sphere[0]
+    for zoomed, factor in zip(_dolly_zooms(cam, sedan, (0.6, 1.7)), (0.6, 1.7)):
+        assert zoomed.focal == pytest.approx(factor * cam.focal)
+        np.testing.assert_allclose(zoomed.R, cam.R, atol=1e-12)
+        np.testing.assert_allclose(zoomed.project(centre[None]), cam.project(centre[None]), atol=1e-6)
+        # The apparent size at the centre's depth is kept: f / depth is unchanged.
+        assert zoomed.focal / zoomed.to_camera(centre[None])[0, 2] == pytest.approx(cam.focal / cam.to_camera(centre[None])[0, 2])
+
+
+def test_a_start_with_the_wrong_perspective_is_recovered(sedan, renderer):
+    """A wide-angle photo registered from a start with 1.8 times its focal length."""
+    truth = view(sedan, 35.0, 12.0, distance=5.5, focal=420.0)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
+    from vehicle_pose.pipeline import _dolly_zooms
+
+    start = _dolly_zooms(perturbed(truth, 9, degrees=4.0, shift=0.02, focal=0.0), sedan, (1.8,))[0]
+    assert projection_error(sedan, start, truth) > 5.0
+    result = register(photo, sedan, init_camera=start, renderer=renderer)
+    assert projection_error(sedan, result.camera, truth) < 1.0
+    assert result.camera.focal == pytest.approx(truth.focal, rel=0.05)

@@ -58,6 +58,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--parametrization", default="view", choices=PARAMETRIZATIONS,
                    help="search coordinates: a view perturbation (default) or the paper's theta")
     r.add_argument("--no-resegment", action="store_true", help="run GrabCut once, from the start pose only")
+    r.add_argument("--no-focal-probes", action="store_true",
+                   help="the second level searches from the first level's pose only, not also from its dolly zooms")
     r.add_argument("--side", default="auto", choices=("auto", "left", "right"), help="visible side")
     r.add_argument("--color", action="store_true", help="score the three colour channels (n = 3)")
     r.add_argument("--no-grabcut", action="store_true", help="keep the photo's background")
@@ -97,6 +99,7 @@ def _register(args: argparse.Namespace) -> int:
         side=args.side,
         parametrization=args.parametrization,
         resegment=not args.no_resegment,
+        focal_starts=() if args.no_focal_probes else RegistrationOptions.focal_starts,
         starts=args.starts,
         refine=args.refine,
     )

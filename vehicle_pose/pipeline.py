@@ -31,7 +31,7 @@ from .initialize import (
 from .library import VehicleModel
 from .loss import make_target
 from .losses import LOSSES, make_loss
-from .optimize import OPTIMIZERS, Optimizer
+from .optimize import OPTIMIZERS, Optimizer, OptimizeResult
 from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
 from .photo import is_gray
 from .pose import Side, Theta, camera_to_theta, visible_side
@@ -131,6 +131,14 @@ class RegistrationOptions:
         View-search score (1 - IoU + loss / max) under which the first region is kept as it is.
     min_confidence : float
         A pose found without a start camera whose confidence is lower is flagged ``failed``.
+    focal_starts : tuple of float
+        The second coarse-to-fine level (of three or more) searches from the first level's pose
+        and from its dolly zooms by these factors (the same centre, size and orientation in the
+        image, the focal length times the factor) on the same mask, ``focal_evaluations``
+        evaluations each; a probe that ends lower than the main search is searched on. A rough
+        start's perspective is what the simplex corrects least (docs/engine.md). Empty: the
+        paper's single search.
+    focal_evaluations : int
     """
 
     loss: str = "invariant-parts"
@@ -159,6 +167,8 @@ class RegistrationOptions:
     region_borders: tuple[tuple[float, float], ...] = ((0.08, 0.1), (0.18, 0.2), (0.28, 0.3))
     region_fit: float = 0.3
     min_confidence: float = 0.5
+    focal_starts: tuple[float, ...] = (0.6, 1.7)
+    focal_evaluations: int = 150
 
 
 @dataclass(frozen=True)
@@ -343,31 +353,48 @@ def _fit(
         mesh = model.lod(_face_budget(float(silhouette.sum()) * (w * h) / (Wf * Hf), options))
         target = make_target(_resize(work, w, h), _resize_mask(foreground, w, h), color=options.color)
         loss_fn = make_loss(options.loss, target)
-        params: Parametrization
-        if options.parametrization == "view":
-            params = ViewParams(camera.scaled(w, h), model.mesh.sphere[0])
-        else:
-            params = ThetaParams(camera.scaled(w, h), geometry, side)
-        try:
-            x0 = params.start()
-        except PoseError:
-            raise PoseError(f"the start pose does not show the {side} side's wheels") from None
-        steps = params.steps() * step_scale * 0.4**li
         stage = f"{stage_prefix}level {li + 1}/{len(sizes)} ({w}x{h})"
         counter = [0]
 
-        def objective(x: npt.NDArray[np.float64]) -> float:
+        def search(reference: Camera, budget: int) -> tuple[OptimizeResult, Parametrization]:
+            params: Parametrization
+            if options.parametrization == "view":
+                params = ViewParams(reference.scaled(w, h), model.mesh.sphere[0])
+            else:
+                params = ThetaParams(reference.scaled(w, h), geometry, side)
             try:
-                cam = params.camera(x)
-            except (PoseError, CameraError):
-                return _INVALID
-            value = float(loss_fn(renderer.render(mesh, cam)))
-            counter[0] += 1
-            if progress is not None and counter[0] % 20 == 0:
-                progress(stage, counter[0], value)
-            return value
+                x0 = params.start()
+            except PoseError:
+                raise PoseError(f"the start pose does not show the {side} side's wheels") from None
 
-        res = optimizer(objective, x0, steps, max_evaluations=options.max_evaluations)
+            def objective(x: npt.NDArray[np.float64]) -> float:
+                try:
+                    cam = params.camera(x)
+                except (PoseError, CameraError):
+                    return _INVALID
+                value = float(loss_fn(renderer.render(mesh, cam)))
+                counter[0] += 1
+                if progress is not None and counter[0] % 20 == 0:
+                    progress(stage, counter[0], value)
+                return value
+
+            steps = params.steps() * step_scale * 0.4**li
+            return optimizer(objective, x0, steps, max_evaluations=budget), params
+
+        runs = [search(camera, options.max_evaluations)]
+        if li == 1 and li < len(sizes) - 1 and options.focal_starts:
+            # The second of three or more levels also probes dolly zooms of the first level's
+            # pose, on the same mask (the perspective is what a simplex corrects least); a
+            # probe that beats the main search is searched on.
+            probes = [search(ref, options.focal_evaluations) for ref in _dolly_zooms(camera, model, options.focal_starts)]
+            best_probe = min(probes, key=lambda e: e[0].fun)
+            runs += probes
+            if best_probe[0].fun < runs[0][0].fun:
+                runs.append(search(best_probe[1].camera(best_probe[0].x).scaled(Wf, Hf),
+                                   options.max_evaluations - options.focal_evaluations))
+        res, params = min(runs, key=lambda e: e[0].fun)
+        if len(runs) > 1:
+            res = replace(res, evaluations=sum(r.evaluations for r, _ in runs), restarts=sum(r.restarts for r, _ in runs))
         camera = params.camera(res.x).scaled(Wf, Hf)
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, res.fun, time.perf_counter() - t))
         if progress is not None:
@@ -384,6 +411,18 @@ def _fit(
                                                 region=region, max_size=max(320, *nxt))
             grabcut_seconds += time.perf_counter() - t
     return _Fit(camera, levels, foreground, grabcut_seconds)
+
+
+def _dolly_zooms(camera: Camera, model: VehicleModel, factors: Sequence[float]) -> list[Camera]:
+    """The camera with its focal length times each factor and the depth following, about the
+    model's centre: the same centre, size and orientation in the image, another perspective."""
+    view = ViewParams(camera, model.mesh.sphere[0])
+    out = []
+    for factor in factors:
+        x = np.zeros(7)
+        x[6] = np.log(factor)
+        out.append(view.camera(x))
+    return out
 
 
 def _box_mask(box: Box, width: int, height: int, margin: float) -> npt.NDArray[np.bool_]:
