@@ -161,3 +161,13 @@ def test_a_level_of_detail_that_loses_the_outline_falls_back_to_more_faces():
     lod = model.lod(64)
     assert mesh.outline_agreement(lod) >= LOD_AGREEMENT
     assert lod.n_faces > 64
+
+
+def test_decimation_keeps_small_parts_whole_and_takes_faces_from_the_body(sedan):
+    coarse = sedan.mesh.decimated(4096)
+    assert coarse.n_faces <= 4096
+    for full, part in zip(sedan.mesh.parts, coarse.parts):
+        if full.kind in ("wheel", "tyre", "light"):
+            assert len(part.faces) == len(full.faces)
+    body = [p for p in coarse.parts if p.kind == "body"][0]
+    assert len(body.faces) < len([p for p in sedan.mesh.parts if p.kind == "body"][0].faces) / 2

@@ -133,25 +133,27 @@ class Mesh:
     def decimated(self, max_faces: int) -> Mesh:
         """A coarser copy with at most about ``max_faces`` faces; textures folded into albedo.
 
-        Coincident vertices are merged first: CAD meshes often come as triangle soups (or are
-        split along creases for shading), and a quadric simplifier cannot collapse the edges of
-        a soup without tearing holes in it.
+        The budget is shared so that small parts (wheels, lights) stay whole and the large ones
+        (the body) give up the faces: one ratio for every part reduced a 160-face wheel to 2
+        faces. Coincident vertices are merged first: CAD meshes often come as triangle soups
+        (or are split along creases for shading), and a quadric simplifier cannot collapse the
+        edges of a soup without tearing holes in it.
         """
         if self.n_faces <= max_faces:
             return self
         import fast_simplification
 
-        ratio = max_faces / self.n_faces
+        budgets = _share_faces([len(p.faces) for p in self.parts], max_faces)
         parts = []
-        for p in self.parts:
+        for p, budget in zip(self.parts, budgets):
             albedo = _mean_albedo(p)
-            if len(p.faces) < 64:
+            if budget >= len(p.faces) or len(p.faces) < 64:
                 parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
                 continue
             merged = trimesh.Trimesh(p.vertices, p.faces, process=True)
             pts, tris = fast_simplification.simplify(
                 np.asarray(merged.vertices, np.float64), np.asarray(merged.faces, np.int64),
-                target_reduction=1.0 - ratio,
+                target_reduction=1.0 - budget / len(p.faces),
             )
             if len(tris) == 0:
                 continue
@@ -177,13 +179,21 @@ class Mesh:
         out = np.zeros((len(dirs), size, size), np.uint8)
         shift = 4
         scale = (size / 2.0) / radius * (1 << shift)
+        one = 1 << shift
         for k, d in enumerate(dirs):
             a = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
             a /= np.linalg.norm(a)
             b = np.cross(d, a)
-            uv = np.stack([verts @ a, verts @ b], axis=1) * scale + (size / 2.0) * (1 << shift)
-            # One call per triangle: fillPoly on many polygons fills their overlaps even-odd.
-            for tri in np.round(uv[faces]).astype(np.int32):
+            uv = np.stack([verts @ a, verts @ b], axis=1) * scale + (size / 2.0) * one
+            tris = np.round(uv[faces]).astype(np.int32)
+            extent = tris.max(axis=1) - tris.min(axis=1)
+            small = extent.max(axis=1) < one
+            # Triangles under a pixel mark the pixels of their corners (a dense mesh has
+            # millions); the others are filled one call each, as fillPoly on many polygons
+            # fills their overlaps even-odd.
+            px = np.clip(tris[small].reshape(-1, 2) >> shift, 0, size - 1)
+            out[k][px[:, 1], px[:, 0]] = 1
+            for tri in tris[~small]:
                 cv2.fillConvexPoly(out[k], tri, 1, cv2.LINE_8, shift)
         return out.astype(bool)
 
@@ -198,6 +208,18 @@ class Mesh:
         inter = (a & b).sum(axis=(1, 2))
         union = np.maximum((a | b).sum(axis=(1, 2)), 1)
         return float((inter / union).min())
+
+
+def _share_faces(sizes: Sequence[int], budget: int) -> list[int]:
+    """Faces allowed to each part: an equal share of ``budget``, where a part needs less its
+    own count and the rest shared among the larger parts."""
+    out = [0] * len(sizes)
+    left, remaining = len(sizes), float(budget)
+    for i in sorted(range(len(sizes)), key=lambda i: sizes[i]):
+        out[i] = int(min(sizes[i], remaining / left))
+        remaining -= out[i]
+        left -= 1
+    return out
 
 
 def _mean_albedo(part: Part) -> float:

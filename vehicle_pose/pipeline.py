@@ -132,8 +132,8 @@ class RegistrationOptions:
     min_confidence : float
         A pose found without a start camera whose confidence is lower is flagged ``failed``.
     focal_starts : tuple of float
-        The second coarse-to-fine level (of three or more) searches from the first level's pose
-        and from its dolly zooms by these factors (the same centre, size and orientation in the
+        The second coarse-to-fine level searches from the first level's pose and from its
+        dolly zooms by these factors (the same centre, size and orientation in the
         image, the focal length times the factor) on the same mask, ``focal_evaluations``
         evaluations each; a probe that ends lower than the main search is searched on. A rough
         start's perspective is what the simplex corrects least (docs/engine.md). Empty: the
@@ -147,7 +147,7 @@ class RegistrationOptions:
     max_size: int = 800
     coarse_sizes: tuple[int, ...] = (160, 320)
     faces_per_pixel: float = 1.0
-    min_faces: int = 4096
+    min_faces: int = 8192
     grabcut: bool = True
     grabcut_margin: float = 0.12
     box_margin: float = 0.04
@@ -382,9 +382,9 @@ def _fit(
             return optimizer(objective, x0, steps, max_evaluations=budget), params
 
         runs = [search(camera, options.max_evaluations)]
-        if li == 1 and li < len(sizes) - 1 and options.focal_starts:
-            # The second of three or more levels also probes dolly zooms of the first level's
-            # pose, on the same mask (the perspective is what a simplex corrects least); a
+        if li == 1 and options.focal_starts:
+            # The second level also probes dolly zooms of the first level's pose, on the same
+            # mask (the perspective is what a simplex corrects least); a
             # probe that beats the main search is searched on.
             probes = [search(ref, options.focal_evaluations) for ref in _dolly_zooms(camera, model, options.focal_starts)]
             best_probe = min(probes, key=lambda e: e[0].fun)
