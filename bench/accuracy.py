@@ -9,6 +9,7 @@ bench/results/accuracy_<part>.json.
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import json
 from pathlib import Path
@@ -111,7 +112,8 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
 
 
 def parse_options(pairs: list[str]) -> RegistrationOptions:
-    """RegistrationOptions from KEY=VALUE strings, each value typed like the field's default."""
+    """RegistrationOptions from KEY=VALUE strings, each value typed like the field's default
+    (tuples as Python literals, e.g. ``focal_starts=(0.6,1.7)``)."""
     defaults = RegistrationOptions()
     fields = {}
     for pair in pairs:
@@ -119,7 +121,12 @@ def parse_options(pairs: list[str]) -> RegistrationOptions:
         if not hasattr(defaults, key):
             raise SystemExit(f"unknown option {key!r}")
         kind = type(getattr(defaults, key))
-        fields[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+        if kind is bool:
+            fields[key] = value.lower() in ("1", "true", "yes")
+        elif kind is tuple:
+            fields[key] = tuple(ast.literal_eval(value))
+        else:
+            fields[key] = kind(value)
     return dataclasses.replace(defaults, **fields)
 
 

@@ -136,3 +136,29 @@ def test_a_start_with_the_wrong_perspective_is_recovered(sedan, renderer):
     result = register(photo, sedan, init_camera=start, renderer=renderer)
     assert projection_error(sedan, result.camera, truth) < 1.0
     assert result.camera.focal == pytest.approx(truth.focal, rel=0.05)
+
+
+def test_a_focal_length_outside_the_usual_range_adds_a_probe_to_its_middle(sedan):
+    from vehicle_pose.pipeline import _probe_factors
+
+    options = RegistrationOptions()
+    usual = view(sedan, 60.0, 10.0, focal=1.5 * 640)
+    assert _probe_factors(usual, options) == list(options.focal_starts)
+    for widths in (10.0, 0.4):
+        cam = view(sedan, 60.0, 10.0, focal=widths * 640)
+        *same, extra = _probe_factors(cam, options)
+        assert same == list(options.focal_starts)
+        assert cam.focal * extra == pytest.approx(np.sqrt(0.7 * 4.0) * 640)
+
+
+def test_the_papers_nearly_orthographic_start_is_registered(sedan, renderer):
+    """The paper's start has f = 10 W; the photo was taken at 1 W."""
+    truth = view(sedan, 60.0, 10.0, distance=6.0, focal=640.0)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=4)
+    from vehicle_pose.pipeline import _dolly_zooms
+
+    start = _dolly_zooms(perturbed(truth, 4, degrees=4.0, shift=0.02, focal=0.0), sedan, (10.0,))[0]
+    assert start.focal == pytest.approx(10 * truth.width)
+    result = register(photo, sedan, init_camera=start, renderer=renderer)
+    assert projection_error(sedan, result.camera, truth) < 1.0
+    assert result.camera.focal == pytest.approx(truth.focal, rel=0.05)
