@@ -126,6 +126,33 @@ def test_textured_parts_modulate_albedo(renderer, tmp_path):
     assert k.max() > 0.3 and k.min() < 0.05 * k.max()
 
 
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_textures_are_not_upside_down(renderer, tmp_path, suffix):
+    # The upper half of the image is white, the lower black; the quad's top edge has v = 1,
+    # which is the image's top in every format trimesh reads (OBJ and glTF alike).
+    from PIL import Image
+
+    from vehicle_pose.mesh import load_mesh
+
+    quad = trimesh.Trimesh([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]], [[0, 1, 2], [0, 2, 3]], process=False)
+    tex = np.zeros((16, 16, 3), np.uint8)
+    tex[:8] = 255
+    quad.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1], [0, 1]], image=Image.fromarray(tex))
+    path = tmp_path / f"quad{suffix}"
+    quad.export(path)
+    mesh = load_mesh(path, texture_dirs=[tmp_path])
+    assert mesh.parts[0].texture is not None
+    cam = look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=0, elevation_deg=0, distance=4.0,
+                         focal=200.0, width=160, height=120)
+    frame = renderer.render(mesh, cam)
+    k = frame.full(frame.attrs[..., 0])
+    cov = frame.coverage
+    rows = np.flatnonzero(cov.any(axis=1))
+    # Medians: the texture repeats, so the outermost texels blend with the opposite edge.
+    top, bottom = (float(np.median(k[r][cov[r]])) for r in (rows[:10], rows[-10:]))
+    assert top > 0.3 and bottom < 0.1 * top, (top, bottom)
+
+
 def test_degenerate_triangles_give_finite_attributes(renderer):
     verts = np.array([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1], [0, 0, 0], [0, 0, 0]], np.float64)
     faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 5]], np.uint32)
@@ -136,3 +163,30 @@ def test_degenerate_triangles_give_finite_attributes(renderer):
                          focal=200.0, width=160, height=120)
     frame = renderer.render(mesh, cam)
     assert frame.pixel_count > 100 and np.all(np.isfinite(frame.attrs))
+
+
+def test_exterior_drops_hidden_faces_and_renders_the_same(renderer):
+    # A closed box with a smaller box inside it (a car's cabin inside its body shell) and a
+    # sphere outside it: the inner box's 12 faces are never seen from outside.
+    outer = trimesh.creation.box(extents=(4.0, 1.8, 1.4))
+    inner = trimesh.creation.box(extents=(2.0, 1.0, 0.8))
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
+    ball.apply_translation([2.6, 0.0, 0.0])
+    mesh = mesh_from_trimesh(trimesh.util.concatenate([outer, inner, ball]))
+    ext = renderer.exterior(mesh)
+    assert ext.n_faces == mesh.n_faces - len(inner.faces)
+    assert renderer.exterior(mesh) is ext  # cached per mesh
+    kept = np.concatenate([p.vertices[p.faces].reshape(-1, 3) for p in ext.parts])
+    assert np.abs(kept).max(axis=0)[1] > 0.85  # the outer box and the sphere remain
+    assert not np.any(np.all(np.abs(kept) < [1.01, 0.51, 0.41], axis=1)), "an inner-box face was kept"
+    for azimuth, elevation in [(0, 5), (75, 30), (160, -20), (250, 60), (330, 15)]:
+        cam = look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=azimuth, elevation_deg=elevation,
+                             distance=5.0, focal=250.0, width=320, height=240)
+        a, b = renderer.render(mesh, cam), renderer.render(ext, cam)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        np.testing.assert_allclose(a.attrs, b.attrs, atol=1e-6)
+
+
+def test_exterior_of_a_fully_visible_mesh_is_the_mesh(renderer):
+    mesh = mesh_from_trimesh(trimesh.creation.icosphere(subdivisions=3))
+    assert renderer.exterior(mesh) is mesh

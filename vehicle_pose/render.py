@@ -5,12 +5,18 @@ is the interpolated unit surface normal in camera coordinates turned towards the
 material label of the visible part (0 where the model does not cover the pixel). Only the window
 that the model's bounding box projects to is read back, so the cost of a frame follows the
 model's size on screen rather than the photo's.
+
+Faces that no view from outside can see (the cabin, engine and inner shells that CAD models of
+cars often carry) are dropped before a mesh is uploaded (:func:`exterior`): they never reach a
+pixel, yet each costs as much as a visible face in the rasteriser's set-up.
 """
 
 from __future__ import annotations
 
+import threading
+import weakref
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import moderngl
@@ -22,7 +28,7 @@ from .errors import RenderError
 from .gl import get_context
 from .mesh import KINDS, Mesh, Part
 
-__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight"]
+__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight", "sphere_directions"]
 
 _VERTEX_SHADER = """
 #version 330
@@ -80,6 +86,28 @@ void main() {
 """
 
 
+# Face ids for the visibility pass of :func:`exterior`.
+_ID_VERTEX_SHADER = """
+#version 330
+uniform mat4 mvp;
+in vec3 in_pos;
+void main() {
+    gl_Position = mvp * vec4(in_pos, 1.0);
+}
+"""
+
+_ID_FRAGMENT_SHADER = """
+#version 330
+uniform int base;
+layout(location = 0) out vec4 out_attr;
+layout(location = 1) out float out_id;
+void main() {
+    out_attr = vec4(0.0);
+    out_id = float(base + gl_PrimitiveID + 1);
+}
+"""
+
+
 def headlight(attrs: npt.NDArray[np.floating]) -> npt.NDArray[np.floating]:
     """Gray shading ``0.3 k_a + 0.7 k_d |n_z|`` of rendered attributes (..., 4): a light at the camera."""
     return 0.3 * attrs[..., 0] + 0.7 * np.abs(attrs[..., 3])
@@ -111,6 +139,52 @@ def projection_matrix(camera: Camera, near: float, far: float) -> npt.NDArray[np
             [0.0, 0.0, 1.0, 0.0],
         ]
     )
+
+
+def sphere_directions(count: int) -> npt.NDArray[np.float64]:
+    """``count`` unit vectors (count, 3) spread evenly over the sphere (a Fibonacci lattice)."""
+    i = np.arange(count) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / count)
+    azimuth = np.pi * (1.0 + np.sqrt(5.0)) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+
+
+def _look_at(direction: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Rotation (3, 3) of a camera looking along ``-direction`` (rows: its x, y, z axes)."""
+    z = -direction / np.linalg.norm(direction)
+    up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def _view_matrices(mesh: Mesh, directions: npt.NDArray[np.float64], distance: float) -> list[npt.NDArray[np.float64]]:
+    """Clip transforms (4, 4) of orthographic views along each direction and of perspective
+    views from ``distance`` radii away, each framing the mesh's enclosing sphere."""
+    centre, radius = mesh.sphere
+    radius = max(radius, 1e-9)
+    out = []
+    for d in directions:
+        R = _look_at(d)
+        for perspective in (False, True):
+            D = distance * radius
+            mv = np.eye(4)
+            mv[:3, :3] = R
+            mv[:3, 3] = -R @ (centre + D * d)
+            if perspective:
+                near, far = max(D - 1.01 * radius, 1e-3 * radius), D + 1.01 * radius
+                g = np.sqrt(D * D - radius * radius) / radius
+                proj = np.array([[g, 0, 0, 0], [0, g, 0, 0],
+                                 [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)], [0, 0, 1, 0]])
+            else:
+                proj = np.array([[1 / radius, 0, 0, 0], [0, 1 / radius, 0, 0], [0, 0, 1 / (1.01 * radius), -D / (1.01 * radius)],
+                                 [0, 0, 0, 1]])
+            out.append(proj @ mv)
+    return out
+
+
+_EXTERIOR: weakref.WeakKeyDictionary[Mesh, Mesh] = weakref.WeakKeyDictionary()
+_EXTERIOR_LOCK = threading.Lock()
 
 
 @dataclass(eq=False)
@@ -215,7 +289,9 @@ class _GpuMesh:
             )
             tex = None
             if texture is not None:
-                img = np.ascontiguousarray(texture)
+                # Texture coordinates put v = 0 at the image's bottom row (the OpenGL convention,
+                # to which trimesh brings every format), and OpenGL's first texel row is v = 0.
+                img = np.ascontiguousarray(texture[::-1])
                 tex = ctx.texture((img.shape[1], img.shape[0]), 3, img.tobytes())
                 tex.build_mipmaps()
                 tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
@@ -249,6 +325,7 @@ class Renderer:
         self._meshes: OrderedDict[int, _GpuMesh] = OrderedDict()
         self._fbos: OrderedDict[tuple[int, int], moderngl.Framebuffer] = OrderedDict()
         self._cache_size = cache_size
+        self._id_program: moderngl.Program | None = None
 
     def _gpu_mesh(self, mesh: Mesh) -> _GpuMesh:
         gpu = self._meshes.get(mesh.key)
@@ -343,6 +420,67 @@ class Renderer:
             camera.height,
         )
 
+    def exterior(self, mesh: Mesh, *, directions: int = 64, size: int = 512, distance: float = 2.0) -> Mesh:
+        """The mesh without the faces that no view from outside sees.
+
+        The mesh is drawn with face ids from ``directions`` directions spread over the sphere,
+        orthographically and in perspective from ``distance`` times its enclosing radius, each
+        framing the whole mesh in ``size`` x ``size`` pixels; faces that never win a pixel's
+        depth test are dropped (the mesh itself when every face is seen). Cached per mesh
+        object, for every renderer of the process.
+        """
+        with _EXTERIOR_LOCK:
+            done = _EXTERIOR.get(mesh)
+        if done is not None:
+            return done
+        if self._id_program is None:
+            self._id_program = self.ctx.program(vertex_shader=_ID_VERTEX_SHADER, fragment_shader=_ID_FRAGMENT_SHADER)
+        program = self._id_program
+        draws, resources, base = [], [], 0
+        try:
+            for part in mesh.parts:
+                vbo = self.ctx.buffer(np.ascontiguousarray(part.vertices, dtype=np.float32).tobytes())
+                ibo = self.ctx.buffer(np.ascontiguousarray(part.faces, dtype=np.uint32).tobytes())
+                vao = self.ctx.vertex_array(program, [(vbo, "3f", "in_pos")], index_buffer=ibo, index_element_size=4)
+                resources += [vao, ibo, vbo]
+                draws.append((vao, base))
+                base += len(part.faces)
+            seen = np.zeros(base + 1, bool)
+            fbo = self._fbo(size, size)
+            fbo.use()
+            fbo.viewport = (0, 0, size, size)
+            self.ctx.scissor = None
+            self.ctx.enable(moderngl.DEPTH_TEST)
+            self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+            for mvp in _view_matrices(mesh, sphere_directions(directions), distance):
+                program["mvp"].write(mvp.T.astype("f4").tobytes())
+                fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+                for vao, first in draws:
+                    program["base"].value = first
+                    vao.render(moderngl.TRIANGLES)
+                ids = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
+                seen[ids.astype(np.int64)] = True
+        finally:
+            for r in resources:
+                r.release()  # type: ignore[attr-defined]
+        err = self.ctx.error
+        if err != "GL_NO_ERROR":
+            raise RenderError(f"OpenGL error while finding the exterior faces: {err}")
+        seen = seen[1:]
+        parts, first = [], 0
+        for part in mesh.parts:
+            keep = seen[first : first + len(part.faces)]
+            first += len(part.faces)
+            if keep.all():
+                parts.append(part)
+            elif keep.any():
+                parts.append(replace(part, faces=part.faces[keep]))
+        unchanged = not parts or (len(parts) == len(mesh.parts) and all(a is b for a, b in zip(parts, mesh.parts)))
+        out = mesh if unchanged else Mesh(tuple(parts), source=f"{mesh.source} (exterior)")
+        with _EXTERIOR_LOCK:
+            _EXTERIOR[mesh] = out
+        return out
+
     def release(self) -> None:
         """Free every GPU buffer this renderer holds."""
         for gpu in self._meshes.values():
@@ -352,3 +490,6 @@ class Renderer:
             fbo.release()
         self._fbos.clear()
         self.program.release()
+        if self._id_program is not None:
+            self._id_program.release()
+            self._id_program = None
