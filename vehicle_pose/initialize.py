@@ -163,7 +163,7 @@ class _Scorer:
         target = make_target(small, region.resized(self.w, self.h).mask, color=False)
         self.loss = InvariantLoss(target)
         self.miss = SilhouetteIoULoss(target)
-        self.mesh = model.lod(max_faces)
+        self.mesh = renderer.exterior(model.lod(max_faces))
         self.renderer = renderer
 
     def __call__(self, camera: Camera) -> tuple[float, float, float]:
