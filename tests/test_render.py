@@ -173,9 +173,11 @@ def test_exterior_drops_hidden_faces_and_renders_the_same(renderer):
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
     ball.apply_translation([2.6, 0.0, 0.0])
     mesh = mesh_from_trimesh(trimesh.util.concatenate([outer, inner, ball]))
-    ext = renderer.exterior(mesh)
+    # 12 hidden faces of 344 are too few to be worth dropping by default (min_hidden=0.05).
+    assert renderer.exterior(mesh) is mesh
+    ext = renderer.exterior(mesh, min_hidden=0.0)
     assert ext.n_faces == mesh.n_faces - len(inner.faces)
-    assert renderer.exterior(mesh) is ext  # cached per mesh
+    assert renderer.exterior(mesh, min_hidden=0.0) is ext  # cached per mesh and arguments
     kept = np.concatenate([p.vertices[p.faces].reshape(-1, 3) for p in ext.parts])
     assert np.abs(kept).max(axis=0)[1] > 0.85  # the outer box and the sphere remain
     assert not np.any(np.all(np.abs(kept) < [1.01, 0.51, 0.41], axis=1)), "an inner-box face was kept"
@@ -185,6 +187,12 @@ def test_exterior_drops_hidden_faces_and_renders_the_same(renderer):
         a, b = renderer.render(mesh, cam), renderer.render(ext, cam)
         np.testing.assert_array_equal(a.labels, b.labels)
         np.testing.assert_allclose(a.attrs, b.attrs, atol=1e-6)
+
+
+def test_exterior_drops_a_large_hidden_part_by_default(renderer):
+    engine = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    mesh = mesh_from_trimesh(trimesh.util.concatenate([trimesh.creation.box(extents=(4.0, 1.8, 1.4)), engine]))
+    assert renderer.exterior(mesh).n_faces == 12
 
 
 def test_exterior_of_a_fully_visible_mesh_is_the_mesh(renderer):
