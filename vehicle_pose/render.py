@@ -7,7 +7,7 @@ that the model's bounding box projects to is read back, so the cost of a frame f
 model's size on screen rather than the photo's.
 
 Faces that no view from outside can see (the cabin, engine and inner shells that CAD models of
-cars often carry) are dropped before a mesh is uploaded (:func:`exterior`): they never reach a
+cars often carry) are dropped before a mesh is uploaded (:meth:`Renderer.exterior`): they never reach a
 pixel, yet each costs as much as a visible face in the rasteriser's set-up.
 """
 
@@ -86,7 +86,7 @@ void main() {
 """
 
 
-# Face ids for the visibility pass of :func:`exterior`.
+# Face ids for the visibility pass of :meth:`Renderer.exterior`.
 _ID_VERTEX_SHADER = """
 #version 330
 uniform mat4 mvp;
@@ -163,23 +163,20 @@ def _view_matrices(mesh: Mesh, directions: npt.NDArray[np.float64], distance: fl
     views from ``distance`` radii away, each framing the mesh's enclosing sphere."""
     centre, radius = mesh.sphere
     radius = max(radius, 1e-9)
+    D = distance * radius
+    near, far = max(D - 1.01 * radius, 1e-3 * radius), D + 1.01 * radius
+    g = np.sqrt(D * D - radius * radius) / radius
+    perspective = np.array([[g, 0, 0, 0], [0, g, 0, 0],
+                            [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)], [0, 0, 1, 0]])
+    orthographic = np.array([[1 / radius, 0, 0, 0], [0, 1 / radius, 0, 0],
+                             [0, 0, 1 / (1.01 * radius), -D / (1.01 * radius)], [0, 0, 0, 1]])
     out = []
     for d in directions:
         R = _look_at(d)
-        for perspective in (False, True):
-            D = distance * radius
-            mv = np.eye(4)
-            mv[:3, :3] = R
-            mv[:3, 3] = -R @ (centre + D * d)
-            if perspective:
-                near, far = max(D - 1.01 * radius, 1e-3 * radius), D + 1.01 * radius
-                g = np.sqrt(D * D - radius * radius) / radius
-                proj = np.array([[g, 0, 0, 0], [0, g, 0, 0],
-                                 [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)], [0, 0, 1, 0]])
-            else:
-                proj = np.array([[1 / radius, 0, 0, 0], [0, 1 / radius, 0, 0], [0, 0, 1 / (1.01 * radius), -D / (1.01 * radius)],
-                                 [0, 0, 0, 1]])
-            out.append(proj @ mv)
+        mv = np.eye(4)
+        mv[:3, :3] = R
+        mv[:3, 3] = -R @ (centre + D * d)
+        out += [orthographic @ mv, perspective @ mv]
     return out
 
 
