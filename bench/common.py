@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import subprocess
 import time
@@ -13,6 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vehicle_pose.camera import Camera
+from vehicle_pose.gl import get_context
 from vehicle_pose.library import VehicleModel, model_from_mesh
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -33,6 +35,13 @@ def table(rows: list[dict], columns: list[str]) -> str:
     return "\n".join(lines)
 
 
+def machine() -> dict:
+    """Where a benchmark ran: platform, processor, cores, Python and the OpenGL renderer."""
+    info = get_context().info
+    return {"platform": platform.platform(), "processor": platform.processor(), "cores": os.cpu_count(),
+            "python": platform.python_version(), "gl_renderer": info["GL_RENDERER"], "gl_version": info["GL_VERSION"]}
+
+
 def write_report(name: str, data: dict) -> Path:
     """Write ``bench/results/<name>.json`` with machine details and return its path."""
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -43,8 +52,8 @@ def write_report(name: str, data: dict) -> Path:
     data = {
         "benchmark": name,
         "date": time.strftime("%Y-%m-%d %H:%M"),
-        "commit": commit,
-        "machine": {"platform": platform.platform(), "processor": platform.processor(), "python": platform.python_version()},
+        "commit": commit or os.environ.get("BENCH_COMMIT", ""),
+        "machine": machine(),
         **data,
     }
     path = RESULTS / f"{name}.json"
