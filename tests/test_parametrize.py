@@ -31,6 +31,35 @@ def test_view_focal_change_keeps_the_centre_and_scale(sedan):
     assert zoomed.to_camera(centre[None])[0, 2] == pytest.approx(2 * ref.to_camera(centre[None])[0, 2])
 
 
+@pytest.mark.parametrize("pivot", [0.5, 1.2])
+def test_view_focal_change_with_a_pivot_keeps_the_size_there(sedan, pivot):
+    ref = view(sedan, 30.0, 15.0)
+    centre, radius = sedan.mesh.sphere
+    params = ViewParams(ref, centre, pivot * radius)
+    np.testing.assert_allclose(params.camera(params.start()).t, ref.t, atol=1e-9)
+    depth = ref.to_camera(centre[None])[0, 2]
+    zoomed = params.camera(np.array([0, 0, 0, 0, 0, 0, np.log(0.6)]))
+    np.testing.assert_allclose(zoomed.project(centre[None]), ref.project(centre[None]), atol=1e-9)
+    # The image scale f / depth is unchanged pivot * radius in front of the centre...
+    new_depth = zoomed.to_camera(centre[None])[0, 2]
+    assert zoomed.focal / (new_depth - pivot * radius) == pytest.approx(ref.focal / (depth - pivot * radius))
+    # ...and the log scale coordinate scales it there.
+    grown = params.camera(np.array([0, 0, 0, 0, 0, np.log(1.25), 0]))
+    grown_depth = grown.to_camera(centre[None])[0, 2]
+    assert ref.focal / (grown_depth - pivot * radius) == pytest.approx(1.25 * ref.focal / (depth - pivot * radius))
+
+
+def test_view_pivot_stays_in_front_of_the_camera(sedan):
+    """A pivot further than half the centre's depth is held there: the camera never reaches it."""
+    ref = view(sedan, 30.0, 15.0)
+    centre, radius = sedan.mesh.sphere
+    depth = ref.to_camera(centre[None])[0, 2]
+    params = ViewParams(ref, centre, 10.0 * depth)
+    for g in (-6.0, 0.0, 3.0):
+        cam = params.camera(np.array([0, 0, 0, 0, 0, 0, g]))
+        assert cam.to_camera(centre[None])[0, 2] > 0.5 * depth
+
+
 def test_theta_origin_is_the_reference(sedan):
     ref = view(sedan, 100.0, 15.0)
     params = ThetaParams(ref, sedan.wheels.side("left"), "left")

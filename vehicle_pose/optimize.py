@@ -77,6 +77,12 @@ class NelderMeadRestarts:
         Each restart's simplex is this fraction of the previous one's.
     adaptive : bool
         Use dimension-dependent simplex coefficients (Gao and Han, 2012).
+    follow : bool
+        Before each restart, step along the previous run's displacement (doubling while the
+        loss falls, at most ``pattern_moves`` steps), and give the restart's simplex its first
+        edge along that displacement: a run that crawled along a diagonal valley hands its
+        direction on instead of starting again from axis-aligned edges.
+    pattern_moves : int
     """
 
     max_restarts: int = 6
@@ -86,6 +92,8 @@ class NelderMeadRestarts:
     shrink: float = 0.7
     adaptive: bool = False
     patience: int = 32
+    follow: bool = True
+    pattern_moves: int = 4
 
     def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
         counted = _Counted(fun)
@@ -94,11 +102,19 @@ class NelderMeadRestarts:
         best = counted(x)
         restarts = -1
         scale = 1.0
+        dim = len(x)
+        basis = np.eye(dim)
+        moved: FloatArray | None = None
         while restarts < self.max_restarts and counted.count < max_evaluations:
             restarts += 1
+            before = best
+            if self.follow and moved is not None and np.any(moved):
+                # Pattern moves along the last run's displacement, doubling while they improve,
+                # then a simplex with its first edge along it.
+                self._pattern(counted, x, moved * s, max_evaluations)
+                basis = _basis_along(moved)
             # Search in coordinates scaled by the steps, so one tolerance suits every parameter.
-            origin = x.copy()
-            dim = len(x)
+            origin = counted.best_x.copy()  # type: ignore[union-attr]
             history: list[float] = []
 
             def stall(intermediate_result: object) -> None:
@@ -106,28 +122,44 @@ class NelderMeadRestarts:
                 if len(history) > max(self.patience, 2 * (dim + 1)) and history[-1 - self.patience] - history[-1] < self.ftol:
                     raise StopIteration
 
-            minimize(
-                lambda z: counted(origin + z * s),
-                np.zeros(dim),
-                method="Nelder-Mead",
-                callback=stall,
-                options={
-                    "initial_simplex": np.vstack([np.zeros(dim), scale * np.eye(dim)]),
-                    "xatol": self.xtol,
-                    "fatol": self.ftol,
-                    "maxfev": max_evaluations - counted.count,
-                    "adaptive": self.adaptive,
-                },
-            )
-            gain = best - counted.best_f
+            if counted.count < max_evaluations:
+                minimize(
+                    lambda z: counted(origin + (basis @ z) * s),
+                    np.zeros(dim),
+                    method="Nelder-Mead",
+                    callback=stall,
+                    options={
+                        "initial_simplex": np.vstack([np.zeros(dim), scale * np.eye(dim)]),
+                        "xatol": self.xtol,
+                        "fatol": self.ftol,
+                        "maxfev": max_evaluations - counted.count,
+                        "adaptive": self.adaptive,
+                    },
+                )
             assert counted.best_x is not None
+            moved = (counted.best_x - x) / s
             x, best = counted.best_x, counted.best_f
             # The first run is not a restart: only a restart that fails to improve ends the search.
-            if restarts > 0 and gain < self.min_gain:
+            if restarts > 0 and before - best < self.min_gain:
                 break
             scale *= self.shrink
         assert counted.best_x is not None
         return OptimizeResult(counted.best_x, counted.best_f, counted.count, max(restarts, 0))
+
+    def _pattern(self, counted: _Counted, x: FloatArray, step: FloatArray, max_evaluations: int) -> None:
+        best = counted.best_f
+        k = 1.0
+        for _ in range(self.pattern_moves):
+            if counted.count >= max_evaluations or counted(x + k * step) >= best:
+                return
+            best = counted.best_f
+            k *= 2.0
+
+
+def _basis_along(d: FloatArray) -> FloatArray:
+    """An orthonormal basis (columns) whose first vector is ``d`` normalised."""
+    q, _ = np.linalg.qr(np.column_stack([d / np.linalg.norm(d), np.eye(len(d))]))
+    return q[:, : len(d)]
 
 
 @dataclass(frozen=True)

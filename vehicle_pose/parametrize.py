@@ -65,10 +65,20 @@ class ThetaParams:
 
 @dataclass(frozen=True)
 class ViewParams:
-    """Rotation vector, centre position, log scale and log focal length about a reference."""
+    """Rotation vector, centre position, log scale and log focal length about a reference.
+
+    ``x = (r, u, v, s, g)``: the camera turns by the rotation vector ``r`` about the model's
+    centre, the centre's image moves by ``(u, v)`` image sizes, ``s`` is the log of the image
+    scale and ``g`` the log of the focal length. The scale is measured at the depth ``pivot``
+    (mesh units) in front of the centre, at most half the centre's depth: a change of focal
+    length alone is a dolly zoom that keeps the size of what lies there, and with the pivot
+    near the visible outline (rather than at the centre) focal length and scale are nearly
+    independent coordinates for the simplex.
+    """
 
     reference: Camera
     centre: FloatArray
+    pivot: float = 0.0
 
     def start(self) -> FloatArray:
         return np.zeros(7)
@@ -87,7 +97,8 @@ class ViewParams:
         f0 = ref.focal
         depth0, pix0 = self._centre_view
         f = f0 * np.exp(x[6])
-        z = depth0 * np.exp(x[6] - x[5])
+        ahead = min(self.pivot, 0.5 * depth0)
+        z = ahead + (depth0 - ahead) * np.exp(x[6] - x[5])
         u = pix0[0] + x[3] * ref.width
         v = pix0[1] + x[4] * ref.height
         K = ref.K.copy()

@@ -149,6 +149,17 @@ class RegistrationOptions:
         range (the paper's start has f = 10 W), the probes also include a dolly zoom to its
         geometric middle (about 1.7 W). From the photoreal cases' hard starts (f = 10 W,
         15-30 degrees off) it raised success from 10 % to 50 % (docs/benchmarks.md).
+    dolly_pivot : float
+        The view coordinates' focal length moves the camera along its line of sight so that
+        the image size stays put at this many bounding-sphere radii in front of the model's
+        centre (:class:`~vehicle_pose.parametrize.ViewParams`), about where the visible
+        outline lies. Pivoting at the centre (0) couples focal length and size: on synthetic
+        starts with 1.7-1.8 times the true focal length, 4 of 8 ended more than 1 px off
+        (the simplex crawls along the diagonal valley); at 0.5 none did (docs/engine.md).
+    probe_margin : float
+        A probe is searched on when it ends below the main search's loss times
+        ``1 + probe_margin``: a probe stops after ``focal_evaluations``, short of where it would
+        settle, so a probe that nearly ties the main search is often in the better basin.
     """
 
     loss: str = "invariant-parts"
@@ -181,6 +192,8 @@ class RegistrationOptions:
     focal_evaluations: int = 150
     focal_range: tuple[float, float] = (0.7, 4.0)
     fine_evaluations: int = 250
+    dolly_pivot: float = 0.5
+    probe_margin: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -373,7 +386,7 @@ def _fit(
         def search(reference: Camera, budget: int) -> tuple[OptimizeResult, Parametrization]:
             params: Parametrization
             if options.parametrization == "view":
-                params = ViewParams(reference.scaled(w, h), model.mesh.sphere[0])
+                params = _view_params(reference.scaled(w, h), model, options)
             else:
                 params = ThetaParams(reference.scaled(w, h), geometry, side)
             try:
@@ -402,10 +415,10 @@ def _fit(
             # mask (the perspective is what a simplex corrects least); a
             # probe that beats the main search is searched on.
             probes = [search(ref, options.focal_evaluations)
-                      for ref in _dolly_zooms(camera, model, _probe_factors(camera, options))]
+                      for ref in _dolly_zooms(camera, model, _probe_factors(camera, options), options.dolly_pivot)]
             best_probe = min(probes, key=lambda e: e[0].fun)
             runs += probes
-            if best_probe[0].fun < runs[0][0].fun:
+            if best_probe[0].fun < runs[0][0].fun * (1.0 + options.probe_margin):
                 runs.append(search(best_probe[1].camera(best_probe[0].x).scaled(Wf, Hf),
                                    options.max_evaluations - options.focal_evaluations))
         res, params = min(runs, key=lambda e: e[0].fun)
@@ -439,10 +452,18 @@ def _probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
     return factors
 
 
-def _dolly_zooms(camera: Camera, model: VehicleModel, factors: Sequence[float]) -> list[Camera]:
-    """The camera with its focal length times each factor and the depth following, about the
-    model's centre: the same centre, size and orientation in the image, another perspective."""
-    view = ViewParams(camera, model.mesh.sphere[0])
+
+def _view_params(reference: Camera, model: VehicleModel, options: RegistrationOptions) -> ViewParams:
+    centre, radius = model.mesh.sphere
+    return ViewParams(reference, centre, options.dolly_pivot * radius)
+
+
+def _dolly_zooms(camera: Camera, model: VehicleModel, factors: Sequence[float], pivot: float = 0.0) -> list[Camera]:
+    """The camera with its focal length times each factor and the depth following: the same
+    centre and orientation in the image, and the same size at ``pivot`` bounding-sphere radii
+    in front of the model's centre (see :class:`ViewParams`), another perspective."""
+    centre, radius = model.mesh.sphere
+    view = ViewParams(camera, centre, pivot * radius)
     out = []
     for factor in factors:
         x = np.zeros(7)

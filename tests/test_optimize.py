@@ -1,0 +1,57 @@
+"""The simplex with restarts: it minimises, keeps to its budget, and its restarts follow the last run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vehicle_pose.optimize import NelderMeadRestarts, _basis_along, _Counted
+
+
+def valley(x: np.ndarray) -> float:
+    """A quadratic valley along (1, 1, ..., 1) / sqrt(n), 300 times narrower across it."""
+    d = np.ones(len(x)) / np.sqrt(len(x))
+    along = float(d @ (x - 1.0))
+    across = (x - 1.0) - along * d
+    return along**2 + 300.0**2 * float(across @ across)
+
+
+def test_minimises_a_round_bowl_to_its_tolerance():
+    res = NelderMeadRestarts()(lambda x: float(np.sum((x - 0.3) ** 2)), np.zeros(7), np.full(7, 0.1), max_evaluations=2000)
+    np.testing.assert_allclose(res.x, 0.3, atol=0.02)
+    assert res.fun < 1e-3
+
+
+@pytest.mark.parametrize("follow", [False, True])
+def test_keeps_to_its_budget(follow):
+    calls = []
+
+    def f(x):
+        calls.append(1)
+        return valley(x)
+
+    res = NelderMeadRestarts(follow=follow)(f, np.zeros(7), np.full(7, 0.1), max_evaluations=150)
+    assert len(calls) == res.evaluations <= 150
+
+
+def test_pattern_moves_double_while_the_loss_falls_and_stop_at_the_first_rise():
+    """From x = 0 along (1, 0): 1, 2, 4 improve on f = (x - 5)^2, 8 does not; 4 is kept."""
+    counted = _Counted(lambda x: float((x[0] - 5.0) ** 2 + x[1] ** 2))
+    counted(np.zeros(2))
+    NelderMeadRestarts()._pattern(counted, np.zeros(2), np.array([1.0, 0.0]), max_evaluations=100)
+    assert counted.count == 1 + 4
+    np.testing.assert_allclose(counted.best_x, [4.0, 0.0])
+
+
+def test_pattern_moves_keep_to_the_budget():
+    counted = _Counted(lambda x: -float(x[0]))
+    counted(np.zeros(1))
+    NelderMeadRestarts(pattern_moves=10)._pattern(counted, np.zeros(1), np.ones(1), max_evaluations=3)
+    assert counted.count == 3
+
+
+def test_basis_along_a_direction_is_orthonormal_and_starts_with_it():
+    d = np.array([0.3, -1.0, 0.2, 0.0, 2.0, 0.1, -0.4])
+    q = _basis_along(d)
+    np.testing.assert_allclose(q.T @ q, np.eye(7), atol=1e-12)
+    np.testing.assert_allclose(abs(q[:, 0] @ d) / np.linalg.norm(d), 1.0, atol=1e-12)
