@@ -19,7 +19,8 @@ COPY pyproject.toml README.md alembic.ini ./
 COPY vehicle_pose ./vehicle_pose
 COPY app ./app
 COPY worker ./worker
-RUN pip install '.[service,postgres,s3]'
+RUN pip install '.[service,postgres,s3]' \
+ && python -c "from vehicle_pose.moments import warm_up; warm_up()"
 COPY vehicle_models ./vehicle_models
 
 USER vp

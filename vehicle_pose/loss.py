@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from .moments import PartMoments, part_moments
 from .photo import is_gray
 from .render import Frame
 
@@ -227,7 +228,13 @@ class InvariantLoss:
     def max_value(self, m: int) -> float:
         return float(min(self.n, m))
 
+    def _moments(self, frame: Frame) -> PartMoments:
+        return part_moments(frame.labels, frame.attrs, self._fw, self._w, unit_weights=self._unit_weights,
+                            x0=frame.x0, y0=frame.y0, width=frame.width, kinds=frame.n_parts)
+
     def __call__(self, frame: Frame) -> float:
+        if self.channels is normal_channels:
+            return self._normal_loss(frame)
         attrs = self.channels(frame)
         m = attrs.shape[1]
         if attrs.shape[0] < self.min_pixels:
@@ -243,13 +250,28 @@ class InvariantLoss:
         s_mm = mf.T @ mf if self._unit_weights else (mf * left[:, :1]).T @ mf
         return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
 
+    def _normal_loss(self, frame: Frame) -> float:
+        """:func:`normal_channels` (coverage, k_a, k_d * normal) from the compiled moments."""
+        mo = self._moments(frame)
+        if mo.pixels < self.min_pixels:
+            return self.max_value(5)
+        count, a = float(mo.count.sum()), mo.a.sum(0)
+        s_m = np.concatenate([[count], a])
+        s_fm = np.concatenate([mo.f.sum(0)[:, None], mo.fa], axis=1)
+        s_mm = np.empty((5, 5))
+        s_mm[0, 0] = count
+        s_mm[0, 1:] = a
+        s_mm[1:, 0] = a
+        s_mm[1:, 1:] = mo.aa
+        return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
+
 
 class PartsInvariantLoss(InvariantLoss):
     """The invariant loss on :func:`part_channels`, with the moments gathered per material.
 
     Equal to ``InvariantLoss(target, channels=part_channels)`` (to rounding), but no (N, m)
     channel matrix is built: the moments of the one-hot material channels are label counts
-    and per-label sums, and the sums of the commonest label follow from the totals.
+    and per-label sums, gathered in one compiled pass (:mod:`vehicle_pose.moments`).
     """
 
     name = "invariant-parts"
@@ -260,36 +282,17 @@ class PartsInvariantLoss(InvariantLoss):
     def __call__(self, frame: Frame) -> float:
         k = frame.n_parts
         m = k + 4
-        if frame.pixel_count < self.min_pixels:
+        mo = self._moments(frame)
+        if mo.pixels < self.min_pixels:
             return self.max_value(m)
-        idx = frame.covered_flat_indices()
-        a = frame.covered(frame.attrs).astype(np.float64)
-        lab = frame.covered(frame.labels)
-        fw = np.take(self._fw, idx, axis=0)
-        w = None if self._unit_weights else np.take(self._w, idx)
-        aw = a if w is None else a * w[:, None]
         n = self.n
-        # Per material: summed weight, weighted photo and weighted attributes.
-        sums = np.zeros((k, 1 + n + 4))
-        total = np.concatenate([[float(len(lab)) if w is None else float(w.sum())], fw.sum(0), aw.sum(0)])
-        sizes = np.bincount(lab, minlength=k + 1)[1:]
-        present = np.flatnonzero(sizes)
-        common = int(np.argmax(sizes))
-        for kind in present:
-            if kind == common:
-                continue
-            sel = lab == kind + 1
-            sums[kind] = np.concatenate([[float(sel.sum()) if w is None else float(w[sel].sum())],
-                                         fw[sel].sum(0), aw[sel].sum(0)])
-        sums[common] = total - sums.sum(0)
-        counts = sums[:, 0]
-        s_m = np.concatenate([counts, total[1 + n :]])
+        s_m = np.concatenate([mo.count, mo.a.sum(0)])
         s_fm = np.empty((n, m))
-        s_fm[:, :k] = sums[:, 1 : 1 + n].T
-        s_fm[:, k:] = fw.T @ a
+        s_fm[:, :k] = mo.f.T
+        s_fm[:, k:] = mo.fa
         s_mm = np.zeros((m, m))
-        s_mm[:k, :k] = np.diag(counts)
-        s_mm[:k, k:] = sums[:, 1 + n :]
-        s_mm[k:, :k] = s_mm[:k, k:].T
-        s_mm[k:, k:] = aw.T @ a
+        s_mm[:k, :k] = np.diag(mo.count)
+        s_mm[:k, k:] = mo.a
+        s_mm[k:, :k] = mo.a.T
+        s_mm[k:, k:] = mo.aa
         return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
