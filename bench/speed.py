@@ -66,7 +66,7 @@ def main() -> None:
             for _ in range(args.repeats):
                 renderer.render(mesh, cam)
             t_render = (time.perf_counter() - t0) / args.repeats
-            # A fresh Frame each time so the covered-pixel indices are recomputed.
+            # A fresh Frame each time, so that nothing a frame caches is reused.
             copies = [Frame(frame.attrs, frame.labels, frame.x0, frame.y0, frame.width, frame.height)
                       for _ in range(args.repeats)]
             t0 = time.perf_counter()

@@ -251,18 +251,29 @@ class InvariantLoss:
         return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
 
     def _normal_loss(self, frame: Frame) -> float:
-        """:func:`normal_channels` (coverage, k_a, k_d * normal) from the compiled moments."""
+        """:func:`normal_channels` (coverage, k_a, k_d * normal) from the compiled moments: the
+        material channels' moments with every material taken as one."""
         mo = self._moments(frame)
         if mo.pixels < self.min_pixels:
             return self.max_value(5)
-        count, a = float(mo.count.sum()), mo.a.sum(0)
-        s_m = np.concatenate([[count], a])
-        s_fm = np.concatenate([mo.f.sum(0)[:, None], mo.fa], axis=1)
-        s_mm = np.empty((5, 5))
-        s_mm[0, 0] = count
-        s_mm[0, 1:] = a
-        s_mm[1:, 0] = a
-        s_mm[1:, 1:] = mo.aa
+        return self._loss_of_parts(mo.count.sum(keepdims=True), mo.f.sum(0, keepdims=True),
+                                   mo.a.sum(0, keepdims=True), mo.fa, mo.aa)
+
+    def _loss_of_parts(self, count: FloatArray, f: FloatArray, a: FloatArray, fa: FloatArray,
+                       aa: FloatArray) -> float:
+        """The loss of M = (one indicator per material, k_a, k_d * normal) from per-material
+        sums (see :class:`~vehicle_pose.moments.PartMoments`)."""
+        k, n = len(count), self.n
+        m = k + 4
+        s_m = np.concatenate([count, a.sum(0)])
+        s_fm = np.empty((n, m))
+        s_fm[:, :k] = f.T
+        s_fm[:, k:] = fa
+        s_mm = np.zeros((m, m))
+        s_mm[:k, :k] = np.diag(count)
+        s_mm[:k, k:] = a
+        s_mm[k:, :k] = a.T
+        s_mm[k:, k:] = aa
         return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
 
 
@@ -280,19 +291,7 @@ class PartsInvariantLoss(InvariantLoss):
         super().__init__(target, channels=part_channels, min_pixels=min_pixels)
 
     def __call__(self, frame: Frame) -> float:
-        k = frame.n_parts
-        m = k + 4
         mo = self._moments(frame)
         if mo.pixels < self.min_pixels:
-            return self.max_value(m)
-        n = self.n
-        s_m = np.concatenate([mo.count, mo.a.sum(0)])
-        s_fm = np.empty((n, m))
-        s_fm[:, :k] = mo.f.T
-        s_fm[:, k:] = mo.fa
-        s_mm = np.zeros((m, m))
-        s_mm[:k, :k] = np.diag(mo.count)
-        s_mm[:k, k:] = mo.a
-        s_mm[k:, :k] = mo.a.T
-        s_mm[k:, k:] = mo.aa
-        return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
+            return self.max_value(frame.n_parts + 4)
+        return self._loss_of_parts(mo.count, mo.f, mo.a, mo.fa, mo.aa)

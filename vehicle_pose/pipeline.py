@@ -386,7 +386,7 @@ def _fit(
         def search(reference: Camera, budget: int) -> tuple[OptimizeResult, Parametrization]:
             params: Parametrization
             if options.parametrization == "view":
-                params = _view_params(reference.scaled(w, h), model, options)
+                params = _view_params(reference.scaled(w, h), model, options.dolly_pivot)
             else:
                 params = ThetaParams(reference.scaled(w, h), geometry, side)
             try:
@@ -452,18 +452,18 @@ def _probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
     return factors
 
 
-
-def _view_params(reference: Camera, model: VehicleModel, options: RegistrationOptions) -> ViewParams:
+def _view_params(reference: Camera, model: VehicleModel, pivot: float) -> ViewParams:
+    """View coordinates about ``reference``, the dolly zoom pivoted ``pivot`` bounding-sphere
+    radii in front of the model's centre."""
     centre, radius = model.mesh.sphere
-    return ViewParams(reference, centre, options.dolly_pivot * radius)
+    return ViewParams(reference, centre, pivot * radius)
 
 
 def _dolly_zooms(camera: Camera, model: VehicleModel, factors: Sequence[float], pivot: float = 0.0) -> list[Camera]:
     """The camera with its focal length times each factor and the depth following: the same
     centre and orientation in the image, and the same size at ``pivot`` bounding-sphere radii
     in front of the model's centre (see :class:`ViewParams`), another perspective."""
-    centre, radius = model.mesh.sphere
-    view = ViewParams(camera, centre, pivot * radius)
+    view = _view_params(camera, model, pivot)
     out = []
     for factor in factors:
         x = np.zeros(7)
