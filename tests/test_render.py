@@ -165,6 +165,23 @@ def test_degenerate_triangles_give_finite_attributes(renderer):
     assert frame.pixel_count > 100 and np.all(np.isfinite(frame.attrs))
 
 
+def _assert_renders_the_same(renderer, a, b, views, *, distance=5.0, focal=250.0, centre=(0, 0, 0)):
+    for azimuth, elevation in views:
+        cam = look_at_camera(centre, [1, 0, 0], [0, 0, 1], azimuth_deg=azimuth, elevation_deg=elevation,
+                             distance=distance, focal=focal, width=320, height=240)
+        fa, fb = renderer.render(a, cam), renderer.render(b, cam)
+        assert fa.pixel_count > 0
+        np.testing.assert_array_equal(fa.labels, fb.labels)
+        # Reversed winding interpolates in another order (differences of 1e-5); where a near
+        # and a far face tie in depth along an outline, drawing both sides may show the far
+        # one, culling shows the near one: a few pixels.
+        off = np.abs(fa.attrs - fb.attrs).max(axis=-1) > 1e-4
+        assert off.sum() <= 0.005 * fa.pixel_count, f"{off.sum()} of {fa.pixel_count} pixels differ"
+
+
+_VIEWS = [(0, 5), (75, 30), (160, -20), (250, 60), (330, 15), (45, -70), (110, 89)]
+
+
 def test_exterior_drops_hidden_faces_and_renders_the_same(renderer):
     # A closed box with a smaller box inside it (a car's cabin inside its body shell) and a
     # sphere outside it: the inner box's 12 faces are never seen from outside.
@@ -173,20 +190,20 @@ def test_exterior_drops_hidden_faces_and_renders_the_same(renderer):
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
     ball.apply_translation([2.6, 0.0, 0.0])
     mesh = mesh_from_trimesh(trimesh.util.concatenate([outer, inner, ball]))
-    # 12 hidden faces of 344 are too few to be worth dropping by default (min_hidden=0.05).
-    assert renderer.exterior(mesh) is mesh
+    # 12 hidden faces of 344 are too few to be worth dropping by default (min_hidden=0.05):
+    # they are kept, drawn from both sides; every other face is seen from outside only.
+    kept = renderer.exterior(mesh)
+    assert kept.n_faces == mesh.n_faces
+    assert sum(len(p.faces) for p in kept.parts if not p.one_sided) == len(inner.faces)
     ext = renderer.exterior(mesh, min_hidden=0.0)
     assert ext.n_faces == mesh.n_faces - len(inner.faces)
+    assert all(p.one_sided for p in ext.parts)
     assert renderer.exterior(mesh, min_hidden=0.0) is ext  # cached per mesh and arguments
-    kept = np.concatenate([p.vertices[p.faces].reshape(-1, 3) for p in ext.parts])
-    assert np.abs(kept).max(axis=0)[1] > 0.85  # the outer box and the sphere remain
-    assert not np.any(np.all(np.abs(kept) < [1.01, 0.51, 0.41], axis=1)), "an inner-box face was kept"
-    for azimuth, elevation in [(0, 5), (75, 30), (160, -20), (250, 60), (330, 15)]:
-        cam = look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=azimuth, elevation_deg=elevation,
-                             distance=5.0, focal=250.0, width=320, height=240)
-        a, b = renderer.render(mesh, cam), renderer.render(ext, cam)
-        np.testing.assert_array_equal(a.labels, b.labels)
-        np.testing.assert_allclose(a.attrs, b.attrs, atol=1e-6)
+    corners = np.concatenate([p.vertices[p.faces].reshape(-1, 3) for p in ext.parts])
+    assert np.abs(corners).max(axis=0)[1] > 0.85  # the outer box and the sphere remain
+    assert not np.any(np.all(np.abs(corners) < [1.01, 0.51, 0.41], axis=1)), "an inner-box face was kept"
+    _assert_renders_the_same(renderer, mesh, kept, _VIEWS)
+    _assert_renders_the_same(renderer, mesh, ext, _VIEWS)
 
 
 def test_exterior_drops_a_large_hidden_part_by_default(renderer):
@@ -195,6 +212,30 @@ def test_exterior_drops_a_large_hidden_part_by_default(renderer):
     assert renderer.exterior(mesh).n_faces == 12
 
 
-def test_exterior_of_a_fully_visible_mesh_is_the_mesh(renderer):
-    mesh = mesh_from_trimesh(trimesh.creation.icosphere(subdivisions=3))
-    assert renderer.exterior(mesh) is mesh
+def test_exterior_orients_inconsistent_winding_for_culling(renderer):
+    # Internet CAD: a closed surface with the winding of a random half of its faces reversed.
+    # Every face is seen from one side only; after orientation, culling what faces away from
+    # the camera draws exactly what drawing both sides does, from far and from close.
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    faces = sphere.faces.copy()
+    flip = np.random.default_rng(3).random(len(faces)) < 0.5
+    faces[flip] = faces[flip][:, ::-1]
+    mesh = mesh_from_trimesh(trimesh.Trimesh(sphere.vertices * [2.0, 0.9, 0.7], faces, process=False))
+    ext = renderer.exterior(mesh)
+    assert ext.n_faces == mesh.n_faces and all(p.one_sided for p in ext.parts)
+    _assert_renders_the_same(renderer, mesh, ext, _VIEWS)
+    _assert_renders_the_same(renderer, mesh, ext, _VIEWS[:4], distance=2.6, focal=120.0)
+
+
+def test_exterior_keeps_a_thin_sheet_two_sided(renderer):
+    # A closed body with a single-sheet fin (a spoiler, a mirror): the fin is seen from both
+    # sides and must never be culled; the body is.
+    body = trimesh.creation.box(extents=(4.0, 1.8, 1.4))
+    fin = trimesh.Trimesh([[1.0, 0.0, 0.7], [2.0, 0.0, 0.7], [2.0, 0.0, 1.5], [1.0, 0.0, 1.5]],
+                          [[0, 1, 2], [0, 2, 3]], process=False)
+    mesh = mesh_from_trimesh(trimesh.util.concatenate([body, fin]))
+    ext = renderer.exterior(mesh)
+    assert sum(len(p.faces) for p in ext.parts if p.one_sided) == len(body.faces)
+    assert sum(len(p.faces) for p in ext.parts if not p.one_sided) == len(fin.faces)
+    # Views of either side of the fin.
+    _assert_renders_the_same(renderer, mesh, ext, [(90, 10), (270, 10), (60, 40), (240, 40)])

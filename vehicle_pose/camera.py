@@ -7,6 +7,7 @@ top-left pixel is (0, 0), so the image centre is ((W - 1) / 2, (H - 1) / 2).
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,11 +50,16 @@ class Camera:
         t = np.asarray(self.t, dtype=np.float64).reshape(-1)
         if K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
             raise CameraError(f"camera needs K 3x3, R 3x3, t 3; got {K.shape}, {R.shape}, {t.shape}")
-        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+        # Checked on Python floats: a camera is built for every loss evaluation.
+        k, r, tt = K.tolist(), R.tolist(), t.tolist()
+        if not all(math.isfinite(v) for row in k + r + [tt] for v in row):
             raise CameraError("camera holds non-finite numbers")
-        if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(K[2, 2] - 1.0) > 1e-9 or np.any(K[2, :2] != 0):
+        if k[0][0] <= 0 or k[1][1] <= 0 or abs(k[2][2] - 1.0) > 1e-9 or k[2][0] != 0 or k[2][1] != 0:
             raise CameraError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-        if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+        gram = max(abs(sum(a * b for a, b in zip(r[i], r[j])) - (i == j)) for i in range(3) for j in range(i, 3))
+        det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+               + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
+        if gram > 1e-6 or det < 0:
             raise CameraError("R is not a rotation matrix")
         if int(self.width) < 1 or int(self.height) < 1:
             raise CameraError(f"image size {self.width}x{self.height} is not positive")

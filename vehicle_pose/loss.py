@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from .moments import PartMoments, part_moments
+from .moments import frame_loss
 from .photo import is_gray
 from .render import Frame
 
@@ -220,6 +220,11 @@ class InvariantLoss:
         self._s_ff = self._fw.T @ photo
         self.n = photo.shape[1]
         self._unit_weights = bool(np.all(weights == 1.0))
+        # The photo's side of the loss, once: its mean and whitening W_F (W_F^T C_FF W_F = I).
+        self._mean_f = self._s_f / self._sw if self._sw > 0 else np.zeros(self.n)
+        c_ff = self._s_ff / self._sw - np.outer(self._mean_f, self._mean_f) if self._sw > 0 else None
+        self._w_f = (np.ascontiguousarray(_inv_sqrt(c_ff)) if c_ff is not None and np.all(np.isfinite(c_ff))
+                     else np.zeros((self.n, 0)))
 
     @staticmethod
     def _photo_attributes(target: PhotoTarget) -> FloatArray:
@@ -228,13 +233,9 @@ class InvariantLoss:
     def max_value(self, m: int) -> float:
         return float(min(self.n, m))
 
-    def _moments(self, frame: Frame) -> PartMoments:
-        return part_moments(frame.labels, frame.attrs, self._fw, self._w, unit_weights=self._unit_weights,
-                            x0=frame.x0, y0=frame.y0, width=frame.width, kinds=frame.n_parts)
-
     def __call__(self, frame: Frame) -> float:
         if self.channels is normal_channels:
-            return self._normal_loss(frame)
+            return self._compiled(frame, merge=True)
         attrs = self.channels(frame)
         m = attrs.shape[1]
         if attrs.shape[0] < self.min_pixels:
@@ -250,31 +251,13 @@ class InvariantLoss:
         s_mm = mf.T @ mf if self._unit_weights else (mf * left[:, :1]).T @ mf
         return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
 
-    def _normal_loss(self, frame: Frame) -> float:
-        """:func:`normal_channels` (coverage, k_a, k_d * normal) from the compiled moments: the
-        material channels' moments with every material taken as one."""
-        mo = self._moments(frame)
-        if mo.pixels < self.min_pixels:
-            return self.max_value(5)
-        return self._loss_of_parts(mo.count.sum(keepdims=True), mo.f.sum(0, keepdims=True),
-                                   mo.a.sum(0, keepdims=True), mo.fa, mo.aa)
-
-    def _loss_of_parts(self, count: FloatArray, f: FloatArray, a: FloatArray, fa: FloatArray,
-                       aa: FloatArray) -> float:
-        """The loss of M = (one indicator per material, k_a, k_d * normal) from per-material
-        sums (see :class:`~vehicle_pose.moments.PartMoments`)."""
-        k, n = len(count), self.n
-        m = k + 4
-        s_m = np.concatenate([count, a.sum(0)])
-        s_fm = np.empty((n, m))
-        s_fm[:, :k] = f.T
-        s_fm[:, k:] = fa
-        s_mm = np.zeros((m, m))
-        s_mm[:k, :k] = np.diag(count)
-        s_mm[:k, k:] = a
-        s_mm[k:, :k] = a.T
-        s_mm[k:, k:] = aa
-        return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
+    def _compiled(self, frame: Frame, *, merge: bool) -> float:
+        """The loss of the material channels (one indicator per material, k_a, k_d * normal),
+        or with ``merge`` of :func:`normal_channels` (every material taken as one), in one
+        compiled pass (:func:`vehicle_pose.moments.frame_loss`)."""
+        return frame_loss(frame.labels, frame.attrs, self._fw, self._w, unit_weights=self._unit_weights,
+                          x0=frame.x0, y0=frame.y0, width=frame.width, kinds=frame.n_parts, merge=merge,
+                          min_pixels=self.min_pixels, sw=self._sw, mean_f=self._mean_f, w_f=self._w_f, rtol=_RTOL)
 
 
 class PartsInvariantLoss(InvariantLoss):
@@ -291,7 +274,4 @@ class PartsInvariantLoss(InvariantLoss):
         super().__init__(target, channels=part_channels, min_pixels=min_pixels)
 
     def __call__(self, frame: Frame) -> float:
-        mo = self._moments(frame)
-        if mo.pixels < self.min_pixels:
-            return self.max_value(frame.n_parts + 4)
-        return self._loss_of_parts(mo.count, mo.f, mo.a, mo.fa, mo.aa)
+        return self._compiled(frame, merge=False)

@@ -62,6 +62,11 @@ class Part:
     uv : (V, 2) float32 or None
     albedo : (V,) float32, gray reflectance in [0, 1]
     texture : (h, w, 3) uint8 or None, multiplies the albedo
+    one_sided : bool
+        Every face is wound so that the side seen from outside the model faces the camera
+        (set by :meth:`vehicle_pose.render.Renderer.exterior`, which found no view that sees
+        its other side): the renderer culls these faces from behind. Otherwise (the default,
+        for meshes as loaded, whose winding is often inconsistent) both sides are drawn.
     """
 
     name: str
@@ -72,6 +77,7 @@ class Part:
     albedo: npt.NDArray[np.float32]
     uv: npt.NDArray[np.float32] | None = None
     texture: npt.NDArray[np.uint8] | None = None
+    one_sided: bool = False
 
     @property
     def label(self) -> int:

@@ -1,11 +1,13 @@
-"""Compiled per-pixel moment sums for the invariant loss (numba).
+"""Compiled per-pixel moment sums and the invariant loss from them (numba).
 
 The loss needs, over the pixels a rendered model covers, the sums of the photo attributes F
 and of the model attributes M and of their products (method.md §2). With NumPy that is a
 chain of gathers, casts and small matrix products, each a pass over memory; this kernel makes
 one pass over the read-back window and accumulates everything in float64. It is 3-4 times
 faster than the NumPy path on the photoreal models (docs/benchmarks.md) and agrees with it to
-rounding (tests/test_loss.py).
+rounding (tests/test_loss.py). :func:`frame_loss` goes on to the loss itself in the same
+compiled call: assembled in NumPy, the covariances and their eigen-decomposition cost as much
+as the pass over the pixels (0.1 ms for a 10 x 10 model covariance).
 
 Compiled on first use and cached beside this file (``NUMBA_CACHE_DIR`` moves the cache).
 """
@@ -18,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-__all__ = ["PartMoments", "part_moments", "warm_up"]
+__all__ = ["PartMoments", "part_moments", "frame_loss", "warm_up"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -80,6 +82,107 @@ def _part_moments(labels, attrs, fw, w, unit, x0, y0, width, k):  # pragma: no c
     return pixels, cnt[1:], sf[1:], sa[1:], sfa, saa
 
 
+@njit(cache=True, nogil=True)
+def _loss_of_parts(sw, mean_f, w_f, count, f, a, fa, aa, rtol):  # pragma: no cover - compiled
+    """The loss of M = (one indicator per material, k_a, k_d * normal) from per-material sums."""
+    k, n = count.shape[0], mean_f.shape[0]
+    m = k + 4
+    worst = float(min(n, m))
+    if sw <= 0.0 or w_f.shape[1] == 0:
+        return worst
+    mean_m = np.empty(m)
+    for i in range(k):
+        mean_m[i] = count[i] / sw
+    for j in range(4):
+        t = 0.0
+        for i in range(k):
+            t += a[i, j]
+        mean_m[k + j] = t / sw
+    c_mm = np.empty((m, m))
+    for i in range(k):
+        for q in range(k):
+            c_mm[i, q] = (count[i] / sw if i == q else 0.0) - mean_m[i] * mean_m[q]
+        for j in range(4):
+            c_mm[i, k + j] = a[i, j] / sw - mean_m[i] * mean_m[k + j]
+            c_mm[k + j, i] = c_mm[i, k + j]
+    for j in range(4):
+        for q in range(4):
+            c_mm[k + j, k + q] = aa[j, q] / sw - mean_m[k + j] * mean_m[k + q]
+    c_fm = np.empty((n, m))
+    for p in range(n):
+        for i in range(k):
+            c_fm[p, i] = f[i, p] / sw - mean_f[p] * mean_m[i]
+        for j in range(4):
+            c_fm[p, k + j] = fa[p, j] / sw - mean_f[p] * mean_m[k + j]
+    if not (np.all(np.isfinite(c_mm)) and np.all(np.isfinite(c_fm))):
+        return worst
+    evals, evecs = np.linalg.eigh(c_mm)
+    top = evals[-1]
+    if not np.isfinite(top) or top <= 0.0:
+        return worst
+    # sum over the kept directions v of |W_F^T C_FM v|^2 / lambda: the squared canonical
+    # correlations (directions without variance carry no information and are dropped).
+    proj = w_f.T @ c_fm
+    explained = 0.0
+    for j in range(m):
+        if evals[j] > rtol * top:
+            for r in range(proj.shape[0]):
+                t = 0.0
+                for q in range(m):
+                    t += proj[r, q] * evecs[q, j]
+                explained += t * t / evals[j]
+    return min(max(worst - explained, 0.0), worst)
+
+
+@njit(cache=True, nogil=True)
+def _frame_loss(labels, attrs, fw, w, unit, x0, y0, width, k, merge, min_pixels, sw, mean_f, w_f, rtol):  # pragma: no cover - compiled
+    pixels, cnt, sf, sa, sfa, saa = _part_moments(labels, attrs, fw, w, unit, x0, y0, width, k)
+    if merge:
+        one = np.empty(1)
+        one[0] = cnt.sum()
+        sf1 = np.empty((1, sf.shape[1]))
+        for i in range(sf.shape[1]):
+            sf1[0, i] = sf[:, i].sum()
+        sa1 = np.empty((1, 4))
+        for j in range(4):
+            sa1[0, j] = sa[:, j].sum()
+        cnt, sf, sa = one, sf1, sa1
+    if pixels < min_pixels:
+        return float(min(mean_f.shape[0], cnt.shape[0] + 4))
+    return _loss_of_parts(sw, mean_f, w_f, cnt, sf, sa, sfa, saa, rtol)
+
+
+def frame_loss(
+    labels: npt.NDArray[np.uint8],
+    attrs: npt.NDArray[np.float32],
+    fw: FloatArray,
+    w: FloatArray,
+    *,
+    unit_weights: bool,
+    x0: int,
+    y0: int,
+    width: int,
+    kinds: int,
+    merge: bool,
+    min_pixels: int,
+    sw: float,
+    mean_f: FloatArray,
+    w_f: FloatArray,
+    rtol: float,
+) -> float:
+    """The invariant loss of a rendered window, in one compiled call.
+
+    The model attributes are one indicator per material kind and (k_a, k_d * normal); with
+    ``merge`` the materials are taken as one (the coverage indicator). Arguments as for
+    :func:`part_moments`, plus the photo's total weight ``sw``, mean ``mean_f`` and whitening
+    ``w_f`` (``W_F^T C_FF W_F = I`` over the range of C_FF, (n, r)) and the relative eigenvalue ``rtol`` under which a model
+    covariance direction counts as empty. Fewer than ``min_pixels`` covered pixels score the
+    maximum, ``min(n, m)``.
+    """
+    return float(_frame_loss(labels, attrs, fw, w, bool(unit_weights), int(x0), int(y0), int(width), int(kinds),
+                             bool(merge), int(min_pixels), float(sw), mean_f, w_f, float(rtol)))
+
+
 def part_moments(
     labels: npt.NDArray[np.uint8],
     attrs: npt.NDArray[np.float32],
@@ -120,5 +223,7 @@ def warm_up() -> None:
     read-only float32 attributes from the read-back buffer, uint8 labels. The Docker image
     calls this at build time, so that its cache ships inside the image."""
     attrs = np.frombuffer(bytes(16), np.float32).reshape(1, 1, 4)
-    part_moments(np.ones((1, 1), np.uint8), attrs, np.zeros((1, 1)), np.ones(1), unit_weights=True,
-                 x0=0, y0=0, width=1, kinds=1)
+    labels = np.ones((1, 1), np.uint8)
+    part_moments(labels, attrs, np.zeros((1, 1)), np.ones(1), unit_weights=True, x0=0, y0=0, width=1, kinds=1)
+    frame_loss(labels, attrs, np.zeros((1, 1)), np.ones(1), unit_weights=True, x0=0, y0=0, width=1, kinds=1,
+               merge=False, min_pixels=16, sw=1.0, mean_f=np.zeros(1), w_f=np.ones((1, 1)), rtol=1e-12)
