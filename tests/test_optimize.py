@@ -55,3 +55,36 @@ def test_basis_along_a_direction_is_orthonormal_and_starts_with_it():
     q = _basis_along(d)
     np.testing.assert_allclose(q.T @ q, np.eye(7), atol=1e-12)
     np.testing.assert_allclose(abs(q[:, 0] @ d) / np.linalg.norm(d), 1.0, atol=1e-12)
+
+
+def test_runs_stop_at_their_evaluation_cap_and_the_search_restarts():
+    """Each simplex run ends after ``run_evaluations``; the search restarts from its best point
+    and still converges. Uncapped, one run (and one confirming restart) does the work."""
+    calls: list[int] = []
+    starts: list[int] = []
+    optimizer = NelderMeadRestarts(run_evaluations=40, max_restarts=30, follow=False)
+
+    def bowl(x: np.ndarray) -> float:
+        calls.append(1)
+        return float(np.sum((x - 2.0) ** 2))
+
+    import vehicle_pose.optimize as optimize_module
+
+    real_minimize = optimize_module.minimize
+
+    def spy(*args, **kwargs):
+        starts.append(len(calls))
+        assert kwargs["options"]["maxfev"] <= 40
+        return real_minimize(*args, **kwargs)
+
+    optimize_module.minimize = spy
+    try:
+        res = optimizer(bowl, np.zeros(7), np.full(7, 0.5), max_evaluations=1500)
+    finally:
+        optimize_module.minimize = real_minimize
+    runs = np.diff(starts + [len(calls)])
+    assert len(starts) >= 4 and runs.max() <= 41  # scipy may finish the iteration it is in
+    assert res.fun < 1e-2  # from 28
+    uncapped = NelderMeadRestarts(run_evaluations=0)(lambda x: float(np.sum((x - 2.0) ** 2)), np.zeros(7),
+                                                     np.full(7, 0.5), max_evaluations=1500)
+    assert uncapped.restarts < len(starts) - 1

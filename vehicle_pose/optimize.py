@@ -62,6 +62,14 @@ class NelderMeadRestarts:
     ----------
     max_restarts : int
         Restarts after the first run.
+    run_evaluations : int
+        One run stops after this many evaluations and the search restarts from its best point
+        (0: a run goes on until its own tests stop it). A long simplex run in seven dimensions
+        flattens along the valley it follows and crawls; a fresh simplex, with its first edge
+        along the way the last run went (``follow``), moves on. With 60, ten synthetic cases
+        with the true mask ended at most 0.91 px off instead of two of them 3.2 and 28 px, and
+        the photoreal cases registered at 1360 rather than 1450 evaluations
+        (docs/benchmarks.md).
     min_gain : float
         A restart that lowers the loss by less stops the search.
     xtol : float
@@ -85,7 +93,8 @@ class NelderMeadRestarts:
     pattern_moves : int
     """
 
-    max_restarts: int = 6
+    max_restarts: int = 20
+    run_evaluations: int = 60
     min_gain: float = 1e-5
     xtol: float = 0.05
     ftol: float = 1e-5
@@ -132,7 +141,8 @@ class NelderMeadRestarts:
                         "initial_simplex": np.vstack([np.zeros(dim), scale * np.eye(dim)]),
                         "xatol": self.xtol,
                         "fatol": self.ftol,
-                        "maxfev": max_evaluations - counted.count,
+                        "maxfev": max_evaluations - counted.count if self.run_evaluations <= 0
+                        else min(self.run_evaluations, max_evaluations - counted.count),
                         "adaptive": self.adaptive,
                     },
                 )
