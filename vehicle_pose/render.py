@@ -184,6 +184,11 @@ def _view_matrices(mesh: Mesh, directions: npt.NDArray[np.float64], distance: fl
     return out
 
 
+# A side of a face counts as seen from outside when it won this share of the face's pixels over
+# all views of the exterior pass, or this many pixels (Renderer.exterior).
+_SEEN_FRACTION = 0.01
+_SEEN_PIXELS = 32.0
+
 _EXTERIOR: weakref.WeakKeyDictionary[Mesh, dict[tuple[int, int, float, float], Mesh]] = weakref.WeakKeyDictionary()
 _EXTERIOR_LOCK = threading.Lock()
 
@@ -500,7 +505,7 @@ class Renderer:
         # depth, and the one drawn first keeps the pixel: a face's far side wins a pixel or two
         # there, under 0.5 % of its pixels on the test shapes and the shipped models. A side is
         # taken as seen from outside when it won at least 1 % of the face's pixels, or 32.
-        least = np.minimum(0.01 * (front + back), 32.0)
+        least = np.minimum(_SEEN_FRACTION * (front + back), _SEEN_PIXELS)
         front, back = seen & (front >= least), seen & (back >= least)
         parts, first = [], 0
         for part in mesh.parts:
