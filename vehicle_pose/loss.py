@@ -99,6 +99,39 @@ def _inv_sqrt(cov: FloatArray) -> FloatArray:
     return evecs[:, keep] / np.sqrt(evals[keep])
 
 
+def _photo_whitening(sw: float, s_f: FloatArray, s_ff: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The photo's mean (n,) and whitening ``W_F`` (n, r), ``W_F^T C_FF W_F = I`` over C_FF's
+    range, from its weighted sums; r = 0 when there is nothing to whiten."""
+    n = len(s_f)
+    if sw <= 0.0:
+        return np.zeros(n), np.zeros((n, 0))
+    mean_f = s_f / sw
+    c_ff = s_ff / sw - np.outer(mean_f, mean_f)
+    if not np.all(np.isfinite(c_ff)):
+        return mean_f, np.zeros((n, 0))
+    return mean_f, _inv_sqrt(c_ff)
+
+
+def _whitened_loss(sw: float, mean_f: FloatArray, w_f: FloatArray, s_m: FloatArray, s_fm: FloatArray,
+                   s_mm: FloatArray) -> float:
+    """:func:`loss_from_moments` with the photo's side already whitened (:func:`_photo_whitening`)."""
+    n, m = s_fm.shape
+    worst = float(min(n, m))
+    if sw <= 0.0 or w_f.shape[1] == 0:
+        return worst
+    mean_m = s_m / sw
+    c_mm = s_mm / sw - np.outer(mean_m, mean_m)
+    c_fm = s_fm / sw - np.outer(mean_f, mean_m)
+    if not (np.all(np.isfinite(c_mm)) and np.all(np.isfinite(c_fm))):
+        return worst
+    w_m = _inv_sqrt(c_mm)
+    if w_m.shape[1] == 0:
+        return worst
+    t = w_f.T @ c_fm @ w_m
+    explained = float(np.sum(t * t))
+    return float(min(max(worst - explained, 0.0), worst))
+
+
 def loss_from_moments(
     sw: float,
     s_f: FloatArray,
@@ -118,24 +151,8 @@ def loss_from_moments(
     s_ff, s_fm, s_mm : (n, n), (n, m), (m, m)
         Weighted sums of the outer products F F^T, F M^T, M M^T.
     """
-    n, m = s_fm.shape
-    worst = float(min(n, m))
-    if sw <= 0.0:
-        return worst
-    mean_f = s_f / sw
-    mean_m = s_m / sw
-    c_ff = s_ff / sw - np.outer(mean_f, mean_f)
-    c_mm = s_mm / sw - np.outer(mean_m, mean_m)
-    c_fm = s_fm / sw - np.outer(mean_f, mean_m)
-    if not (np.all(np.isfinite(c_mm)) and np.all(np.isfinite(c_fm)) and np.all(np.isfinite(c_ff))):
-        return worst
-    w_f = _inv_sqrt(c_ff)
-    w_m = _inv_sqrt(c_mm)
-    if w_f.shape[1] == 0 or w_m.shape[1] == 0:
-        return worst
-    t = w_f.T @ c_fm @ w_m
-    explained = float(np.sum(t * t))
-    return float(min(max(worst - explained, 0.0), worst))
+    mean_f, w_f = _photo_whitening(sw, s_f, s_ff)
+    return _whitened_loss(sw, mean_f, w_f, s_m, s_fm, s_mm)
 
 
 def invariant_loss(
@@ -220,11 +237,9 @@ class InvariantLoss:
         self._s_ff = self._fw.T @ photo
         self.n = photo.shape[1]
         self._unit_weights = bool(np.all(weights == 1.0))
-        # The photo's side of the loss, once: its mean and whitening W_F (W_F^T C_FF W_F = I).
-        self._mean_f = self._s_f / self._sw if self._sw > 0 else np.zeros(self.n)
-        c_ff = self._s_ff / self._sw - np.outer(self._mean_f, self._mean_f) if self._sw > 0 else None
-        self._w_f = (np.ascontiguousarray(_inv_sqrt(c_ff)) if c_ff is not None and np.all(np.isfinite(c_ff))
-                     else np.zeros((self.n, 0)))
+        # The photo's side of the loss, once.
+        self._mean_f, w_f = _photo_whitening(self._sw, self._s_f, self._s_ff)
+        self._w_f = np.ascontiguousarray(w_f)
 
     @staticmethod
     def _photo_attributes(target: PhotoTarget) -> FloatArray:
@@ -249,7 +264,7 @@ class InvariantLoss:
         cross = left.T @ mf
         s_m, s_fm = cross[0], cross[1:]
         s_mm = mf.T @ mf if self._unit_weights else (mf * left[:, :1]).T @ mf
-        return loss_from_moments(self._sw, self._s_f, s_m, self._s_ff, s_fm, s_mm)
+        return _whitened_loss(self._sw, self._mean_f, self._w_f, s_m, s_fm, s_mm)
 
     def _compiled(self, frame: Frame, *, merge: bool) -> float:
         """The loss of the material channels (one indicator per material, k_a, k_d * normal),

@@ -131,7 +131,8 @@ class NelderMeadRestarts:
                 if len(history) > max(self.patience, 2 * (dim + 1)) and history[-1 - self.patience] - history[-1] < self.ftol:
                     raise StopIteration
 
-            if counted.count < max_evaluations:
+            left = max_evaluations - counted.count
+            if left > 0:
                 minimize(
                     lambda z: counted(origin + (basis @ z) * s),
                     np.zeros(dim),
@@ -141,8 +142,7 @@ class NelderMeadRestarts:
                         "initial_simplex": np.vstack([np.zeros(dim), scale * np.eye(dim)]),
                         "xatol": self.xtol,
                         "fatol": self.ftol,
-                        "maxfev": max_evaluations - counted.count if self.run_evaluations <= 0
-                        else min(self.run_evaluations, max_evaluations - counted.count),
+                        "maxfev": left if self.run_evaluations <= 0 else min(self.run_evaluations, left),
                         "adaptive": self.adaptive,
                     },
                 )
