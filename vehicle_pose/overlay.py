@@ -46,10 +46,10 @@ def draw_overlay(
         return out
     labels = frame.full(frame.labels)
     if shade > 0.0:
-        attrs = frame.full(frame.attrs)
-        gray = np.clip(headlight(attrs), 0.0, 1.0) * 255.0
+        # Covered pixels come in the same (row-major) order from the window and the image.
+        gray = np.clip(headlight(frame.covered(frame.attrs)), 0.0, 1.0) * 255.0
         cov = labels > 0
-        out[cov] = ((1.0 - shade) * out[cov] + shade * gray[cov, None]).astype(np.uint8)
+        out[cov] = ((1.0 - shade) * out[cov] + shade * gray[:, None]).astype(np.uint8)
     edges = np.zeros((H, W), np.uint8)
     edges[:, 1:] |= labels[:, 1:] != labels[:, :-1]
     edges[1:, :] |= labels[1:, :] != labels[:-1, :]

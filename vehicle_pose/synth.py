@@ -61,8 +61,8 @@ def synthesize(
     """A photo (H, W, 3) uint8 RGB of the mesh at ``camera`` and its true mask (H, W) bool."""
     r = renderer if renderer is not None else Renderer()
     frame = r.render(mesh, camera)
-    attrs = frame.full(frame.attrs).astype(np.float64)
     mask = frame.coverage
+    attrs = frame.full(np.where(frame.labels[..., None] > 0, frame.attrs, 0.0)).astype(np.float64)
     light = np.asarray(lighting.direction, np.float64)
     light /= np.linalg.norm(light)
     # Normals face the camera (n_z < 0); the light direction points from the surface to the light.
