@@ -220,10 +220,10 @@ def part_moments(
 
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel for the array types the renderer produces:
-    read-only float32 attributes from the read-back buffer, uint8 labels. The Docker image
+    read-only float32 attributes and uint8 labels from the read-back buffers. The Docker image
     calls this at build time, so that its cache ships inside the image."""
     attrs = np.frombuffer(bytes(16), np.float32).reshape(1, 1, 4)
-    labels = np.ones((1, 1), np.uint8)
+    labels = np.frombuffer(bytes([1]), np.uint8).reshape(1, 1)
     part_moments(labels, attrs, np.zeros((1, 1)), np.ones(1), unit_weights=True, x0=0, y0=0, width=1, kinds=1)
     frame_loss(labels, attrs, np.zeros((1, 1)), np.ones(1), unit_weights=True, x0=0, y0=0, width=1, kinds=1,
                merge=False, min_pixels=16, sw=1.0, mean_f=np.zeros(1), w_f=np.ones((1, 1)), rtol=1e-12)

@@ -87,7 +87,7 @@ void main() {
     float k = v_albedo;
     if (v_layer >= 0.0) k *= dot(texture(tex, vec3(v_uv, v_layer)).rgb, vec3(0.299, 0.587, 0.114));
     out_attr = vec4(k, k * n);
-    out_label = v_label;
+    out_label = v_label / 255.0;  // an 8-bit normalised attachment stores the integer
 }
 """
 
@@ -363,7 +363,7 @@ class Renderer:
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         self.program["tex"].value = 0
         self._meshes: OrderedDict[int, _GpuMesh] = OrderedDict()
-        self._fbos: OrderedDict[tuple[int, int], moderngl.Framebuffer] = OrderedDict()
+        self._fbos: OrderedDict[tuple[int, int, str], moderngl.Framebuffer] = OrderedDict()
         self._cache_size = cache_size
         self._id_program: moderngl.Program | None = None
 
@@ -379,8 +379,14 @@ class Renderer:
             self._meshes.move_to_end(mesh.key)
         return gpu
 
-    def _fbo(self, width: int, height: int) -> moderngl.Framebuffer:
-        fbo = self._fbos.get((width, height))
+    def _fbo(self, width: int, height: int, label_dtype: str = "f1") -> moderngl.Framebuffer:
+        """A framebuffer of attributes (RGBA float32), labels (one channel) and depth.
+
+        Labels are 8-bit normalised for rendering (a quarter of the bytes to write, clear and
+        read of float32), float32 for the exterior pass's face ids.
+        """
+        key = (width, height, label_dtype)
+        fbo = self._fbos.get(key)
         if fbo is None:
             # Keep the framebuffer bound last (the most recent entry): creating a framebuffer
             # rebinds the previous one, which must still exist.
@@ -389,13 +395,13 @@ class Renderer:
             fbo = self.ctx.framebuffer(
                 color_attachments=[
                     self.ctx.renderbuffer((width, height), 4, dtype="f4"),
-                    self.ctx.renderbuffer((width, height), 1, dtype="f4"),
+                    self.ctx.renderbuffer((width, height), 1, dtype=label_dtype),
                 ],
                 depth_attachment=self.ctx.depth_renderbuffer((width, height)),
             )
-            self._fbos[(width, height)] = fbo
+            self._fbos[key] = fbo
         else:
-            self._fbos.move_to_end((width, height))
+            self._fbos.move_to_end(key)
         return fbo
 
     @staticmethod
@@ -456,7 +462,7 @@ class Renderer:
                     self.ctx.disable(moderngl.CULL_FACE)
                 vao.render(moderngl.TRIANGLES)
             attrs = np.frombuffer(fbo.read(viewport=win, components=4, attachment=0, dtype="f4"), np.float32)
-            labels = np.frombuffer(fbo.read(viewport=win, components=1, attachment=1, dtype="f4"), np.float32)
+            labels = np.frombuffer(fbo.read(viewport=win, components=1, attachment=1, dtype="f1"), np.uint8)
         finally:
             self.ctx.scissor = None
         err = self.ctx.error
@@ -464,7 +470,7 @@ class Renderer:
             raise RenderError(f"OpenGL error while rendering: {err}")
         return Frame(
             attrs.reshape(h, w, 4),
-            labels.reshape(h, w).astype(np.uint8),
+            labels.reshape(h, w),
             x0,
             y0,
             camera.width,
@@ -515,7 +521,7 @@ class Renderer:
             self.ctx.scissor = None
             self.ctx.enable(moderngl.DEPTH_TEST)
             self.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-            fbo = self._fbo(size, size)
+            fbo = self._fbo(size, size, "f4")
             fbo.use()
             fbo.viewport = (0, 0, size, size)
             for mvp in _view_matrices(mesh, sphere_directions(directions), distance):
