@@ -69,7 +69,7 @@ def largest_component(mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
 def find_vehicle(
     rgb: npt.NDArray[np.uint8],
     *,
-    size: int = 256,
+    size: int = 320,
     border: tuple[float, float] = (0.08, 0.1),
     iterations: int = 5,
     rect: Box | None = None,
@@ -80,7 +80,10 @@ def find_vehicle(
     ----------
     rgb : (H, W, 3) uint8
     size : int, keyword-only
-        GrabCut runs on the photo reduced to this longer side.
+        GrabCut runs on the photo reduced to this longer side. On the photoreal cases 320
+        gave regions closer to the true mask than 256 (the best of the three rectangles: mean
+        IoU 0.84 against 0.77; 400: 0.85 at 1.6 times the cost), and no-hint success rose from
+        70 to 75 % (docs/benchmarks.md).
     border : (fx, fy), keyword-only
         Fractions of the width and height outside the start rectangle (certain background).
     iterations : int, keyword-only
