@@ -153,7 +153,6 @@ def test_textures_are_not_upside_down(renderer, tmp_path, suffix):
     assert top > 0.3 and bottom < 0.1 * top, (top, bottom)
 
 
-
 def test_parts_with_textures_of_different_sizes_keep_their_own(renderer):
     # Three quads side by side in one mesh, drawn in one call: a 4x4 texture dark on its left
     # half, a 16x16 one dark on its lower half (one texture array, the smaller layer resized),

@@ -330,8 +330,8 @@ class _GpuMesh:
 
 def _texture_layers(images: list[npt.NDArray[np.uint8]]) -> tuple[tuple[int, int, int], int, bytes]:
     """Size, components and bytes of an RGBA texture array of the images, each resized to the
-    largest width and height among them (RGBA: llvmpipe samples four 8-bit channels faster
-    than one or three).
+    largest width and height among them (RGBA: llvmpipe sampled it faster than a one-channel
+    luminance array).
 
     Texture coordinates put v = 0 at the image's bottom row (the OpenGL convention, to which
     trimesh brings every format), and OpenGL's first texel row is v = 0: rows are flipped.
