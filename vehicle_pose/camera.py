@@ -99,6 +99,14 @@ class Camera:
         S = np.array([[sx, 0.0, 0.5 * (sx - 1.0)], [0.0, sy, 0.5 * (sy - 1.0)], [0.0, 0.0, 1.0]])
         return Camera(S @ self.K, self.R, self.t, width, height)
 
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> Camera:
+        """The same camera for the ``width`` x ``height`` window whose top-left pixel is (x0, y0)
+        of this image; negative offsets place this image inside a larger one (the inverse)."""
+        K = self.K.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        return Camera(K, self.R, self.t, width, height)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "K": self.K.tolist(),

@@ -12,7 +12,6 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
@@ -25,6 +24,7 @@ from .losses import SilhouetteIoULoss
 from .metadata import parse_axis
 from .region import VehicleRegion
 from .render import Renderer
+from .window import Window
 
 __all__ = [
     "Box",
@@ -38,9 +38,12 @@ __all__ = [
     "view_search",
     "distinct",
     "rotation_angle",
+    "WINDOW_MARGIN",
 ]
 
 Box = tuple[float, float, float, float]
+# The start-pose searches look at the vehicle's box grown by this fraction of its longer side.
+WINDOW_MARGIN = 0.3
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -152,22 +155,24 @@ def refocus(camera: Camera, focal: float, model: VehicleModel, box: Box) -> Came
 
 
 class _Scorer:
-    """Scores cameras on a reduced photo against a region: silhouette IoU and invariant loss."""
+    """Scores cameras on a reduced photo against a region: silhouette IoU and invariant loss.
+
+    With a ``margin``, the scores are taken on a window around the region's box (grown by
+    ``margin`` times its longer side) rather than on the whole photo, reduced to ``size``.
+    """
 
     def __init__(self, rgb: npt.NDArray[np.uint8], region: VehicleRegion, model: VehicleModel,
-                 renderer: Renderer, size: int, max_faces: int) -> None:
+                 renderer: Renderer, size: int, max_faces: int, margin: float | None) -> None:
         H, W = rgb.shape[:2]
-        s = min(1.0, size / max(W, H))
-        self.w, self.h = max(8, round(W * s)), max(8, round(H * s))
-        small = cv2.resize(rgb, (self.w, self.h), interpolation=cv2.INTER_AREA)
-        target = make_target(small, region.resized(self.w, self.h).mask, color=False)
+        self.window = Window.around(region.box, W, H, size=size, margin=margin)
+        target = make_target(self.window.image(rgb), self.window.mask(region.mask), color=False)
         self.loss = InvariantLoss(target)
         self.miss = SilhouetteIoULoss(target)
         self.mesh = renderer.exterior(model.lod(max_faces))
         self.renderer = renderer
 
     def __call__(self, camera: Camera) -> tuple[float, float, float]:
-        frame = self.renderer.render(self.mesh, camera.scaled(self.w, self.h))
+        frame = self.renderer.render(self.mesh, self.window.camera(camera))
         iou = 1.0 - self.miss(frame)
         loss = float(self.loss(frame))
         return (1.0 - iou) + loss / self.loss.max_value(5), iou, loss
@@ -182,9 +187,14 @@ def score_cameras(
     *,
     size: int = 160,
     max_faces: int = 4096,
+    margin: float | None = WINDOW_MARGIN,
 ) -> list[Candidate]:
-    """The candidates with their score, IoU and loss filled in, best first."""
-    scorer = _Scorer(rgb, region, model, renderer, size, max_faces)
+    """The candidates with their score, IoU and loss filled in, best first.
+
+    They are scored on a window around the region (see :class:`~vehicle_pose.window.Window`)
+    reduced to ``size`` pixels; ``margin=None`` scores on the whole photo.
+    """
+    scorer = _Scorer(rgb, region, model, renderer, size, max_faces, margin)
     out = []
     for cand in candidates:
         score, iou, loss = scorer(cand.camera)
@@ -212,8 +222,10 @@ def view_search(
     grid: SearchGrid = SearchGrid(),
     size: int = 160,
     max_faces: int = 4096,
+    margin: float | None = WINDOW_MARGIN,
 ) -> list[Candidate]:
-    """Every view of ``grid`` fitted to the region and scored, best first (at the photo's size)."""
+    """Every view of ``grid`` fitted to the region and scored (see :func:`score_cameras`), best
+    first (cameras at the photo's size)."""
     H, W = rgb.shape[:2]
     cands = [
         Candidate(view_camera(model, az, el, roll, region.box, W, H, grid.focal * W), "view-search",
@@ -222,4 +234,4 @@ def view_search(
         for el in grid.elevations
         for roll in grid.rolls
     ]
-    return score_cameras(rgb, region, model, cands, renderer, size=size, max_faces=max_faces)
+    return score_cameras(rgb, region, model, cands, renderer, size=size, max_faces=max_faces, margin=margin)
