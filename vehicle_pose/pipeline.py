@@ -353,14 +353,11 @@ def _fit(
     stage_prefix: str = "",
     *,
     step_scale: float = 1.0,
-    resegment_last: bool = False,
     box: Box | None = None,
 ) -> _Fit:
     """Register from one start camera on ``work`` (already at working size).
 
-    ``step_scale`` scales the first level's simplex; with ``resegment_last`` the foreground is
-    segmented again after the last level too (for a caller that goes on at a finer size).
-    ``box`` (working-size pixels), the client's box of the vehicle, widens what GrabCut may
+    ``step_scale`` scales the first level's simplex. ``box`` (working-size pixels), the client's box of the vehicle, widens what GrabCut may
     call foreground beyond the grown start silhouette.
     """
     Hf, Wf = work.shape[:2]
@@ -372,8 +369,7 @@ def _fit(
         side = visible_side(start, model.wheels.side("left"))
     geometry = model.wheels.side(side)
 
-    coarse_mesh = model.lod(_OUTLINE_FACES)
-    silhouette = renderer.render(coarse_mesh, start).coverage
+    silhouette = renderer.render(model.lod(_OUTLINE_FACES), start).coverage
     if silhouette.sum() < 16:
         raise PoseError("the start pose puts the model off-screen or behind the camera")
 
@@ -448,13 +444,12 @@ def _fit(
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, res.fun, time.perf_counter() - t))
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
-        if segment_again and (li < len(sizes) - 1 or resegment_last):
+        if segment_again and li < len(sizes) - 1:
             t = time.perf_counter()
             # At the next level's resolution: a mask upsampled from a coarser GrabCut
             # misplaces the outline by a pixel, and the pose follows the mask (synthetic
             # cases ended 0.5-1.2 px off with a 320-pixel mask, below 0.1 px with this).
-            nxt = sizes[li + 1] if li + 1 < len(sizes) else (Wf, Hf)
-            again = _resegment(work, model, camera, options, renderer, region, max(nxt))
+            again = _resegment(work, model, camera, options, renderer, region, max(sizes[li + 1]))
             foreground = foreground if again is None else again
             grabcut_seconds += time.perf_counter() - t
     return _Fit(camera, levels, foreground, grabcut_seconds)
@@ -605,16 +600,17 @@ def _search_starts(
         regions = [find_vehicle(work, border=options.region_borders[0])]
     # The region hypothesis whose best view fits it best wins; narrower start rectangles are
     # tried only when the first region is not already well explained by a view.
-    searched = [(view_search(work, reg, model, renderer, max_faces=lod_faces, margin=_window_margin(options)), reg) for reg in regions]
+    margin = _window_margin(options)
+    searched = [(view_search(work, reg, model, renderer, max_faces=lod_faces, margin=margin), reg) for reg in regions]
     if region is None and fg is None and rect is None and searched[0][0][0].score > options.region_fit:
         for border in options.region_borders[1:]:
             reg = find_vehicle(work, border=border)
-            searched.append((view_search(work, reg, model, renderer, max_faces=lod_faces, margin=_window_margin(options)), reg))
+            searched.append((view_search(work, reg, model, renderer, max_faces=lod_faces, margin=margin), reg))
     cands, region = min(searched, key=lambda e: e[0][0].score)
     if options.wheels:
         ellipses = detect_wheels(work, region, max_count=4)
         pairs = wheel_candidates(ellipses, model, Wf, Hf)
-        cands += score_cameras(work, region, model, pairs, renderer, max_faces=lod_faces, margin=_window_margin(options))
+        cands += score_cameras(work, region, model, pairs, renderer, max_faces=lod_faces, margin=margin)
     starts = distinct(cands, options.starts)
     best = starts[0]
     if best.source == "view-search":
