@@ -1,11 +1,19 @@
-"""The simplex with restarts: it minimises, keeps to its budget, and its restarts follow the last run."""
+"""The optimisers: the simplex with restarts minimises, keeps to its budget, and its restarts follow
+the last run; CMA-ES walks a narrow valley, keeps to its budget, repeats itself and leaves NumPy's
+global generator as it found it."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from vehicle_pose.optimize import NelderMeadRestarts, _basis_along, _Counted
+from vehicle_pose.optimize import (
+    CMAES,
+    OPTIMIZERS,
+    NelderMeadRestarts,
+    _basis_along,
+    _Counted,
+)
 
 
 def valley(x: np.ndarray) -> float:
@@ -88,3 +96,42 @@ def test_runs_stop_at_their_evaluation_cap_and_the_search_restarts():
     uncapped = NelderMeadRestarts(run_evaluations=0)(lambda x: float(np.sum((x - 2.0) ** 2)), np.zeros(7),
                                                      np.full(7, 0.5), max_evaluations=1500)
     assert uncapped.restarts < len(starts) - 1
+
+
+def rotated_valley(x: np.ndarray) -> float:
+    """A quadratic valley 100 times narrower across than along, along no axis, minimum at 0.7."""
+    q = np.linalg.qr(np.arange(1.0, 50.0).reshape(7, 7) ** 0.5)[0]
+    z = q.T @ (x - 0.7)
+    return float(z[0] ** 2 + 100.0**2 * np.sum(z[1:] ** 2))
+
+
+def test_cma_es_walks_a_narrow_valley_to_its_minimum_where_the_simplex_stops_short():
+    res = CMAES()(rotated_valley, np.zeros(7), np.full(7, 0.3), max_evaluations=4000)
+    np.testing.assert_allclose(res.x, 0.7, atol=1e-3)
+    assert res.fun < 1e-5 and res.evaluations <= 4000 and OPTIMIZERS["cma-es"] is CMAES
+    simplex = NelderMeadRestarts()(rotated_valley, np.zeros(7), np.full(7, 0.3), max_evaluations=4000)
+    assert simplex.fun > 1.0
+
+
+def test_cma_es_keeps_to_its_budget_and_never_ends_above_its_start():
+    calls = []
+
+    def f(x):
+        calls.append(1)
+        return rotated_valley(x) if len(calls) == 1 else 1e9  # everything but the start is worse
+
+    res = CMAES()(f, np.zeros(7), np.full(7, 0.3), max_evaluations=100)
+    assert len(calls) == res.evaluations <= 100
+    np.testing.assert_array_equal(res.x, np.zeros(7))
+
+
+def test_cma_es_repeats_itself_and_restores_the_global_generator():
+    np.random.seed(11)
+    expected = np.random.rand()
+    np.random.seed(11)
+    a = CMAES()(rotated_valley, np.zeros(7), np.full(7, 0.3), max_evaluations=300)
+    assert np.random.rand() == expected
+    b = CMAES()(rotated_valley, np.zeros(7), np.full(7, 0.3), max_evaluations=300)
+    np.testing.assert_array_equal(a.x, b.x)
+    c = CMAES(seed=2)(rotated_valley, np.zeros(7), np.full(7, 0.3), max_evaluations=300)
+    assert not np.array_equal(a.x, c.x)

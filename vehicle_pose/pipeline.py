@@ -132,6 +132,12 @@ class RegistrationOptions:
         window of the photo: the vehicle's box grown by this fraction of its longer side on
         every side, reduced to their sizes, so a small vehicle is seen at the resolution of a
         large one (:class:`~vehicle_pose.window.Window`). None: the whole photo.
+    refine_optimizer : str
+        A name from :data:`vehicle_pose.optimize.OPTIMIZERS`: the optimiser of the refinement
+        of the screened poses (no start camera). CMA-ES, because near-frontal and near-rear views
+        with a short lens leave a simplex stuck in a narrow valley (docs/engine.md).
+    refine_evaluations : int
+        Loss evaluations allowed per refined screened pose.
     second_pass : bool
         When the pose found without a start camera is not credible, search again with the
         foreground segmented around it as the vehicle's region, and keep the lower loss. On
@@ -201,6 +207,8 @@ class RegistrationOptions:
     screen_size: int = 200
     screen_evaluations: int = 300
     window_margin: float | None = WINDOW_MARGIN
+    refine_optimizer: str = "cma-es"
+    refine_evaluations: int = 700
     second_pass: bool = True
     wheels: bool = True
     start_focals: tuple[float, ...] = (0.8, 3.0)
@@ -701,13 +709,15 @@ def _search_pass(
     longer = max(Wf, Hf)
     mids = [c for c in options.coarse_sizes if options.screen_size < c < 0.75 * longer]
     fits = []
+    refiner = OPTIMIZERS[options.refine_optimizer]()
     for k, (_, cam, cand) in enumerate(chosen):
         prefix = stage + (f"refine {k + 1}/{len(chosen)}: " if len(chosen) > 1 else "refine: ")
         win = Window.around(_union(region.box, _projected_box(model, cam)), Wf, Hf,
                             size=mids[-1] if mids else longer, margin=_window_margin(options))
         mf = _fit(win.image(work), model, win.camera(cam),
-                  replace(options, max_size=max(win.width, win.height), coarse_to_fine=False),
-                  renderer, optimizer, progress, None if fg is None else win.mask(fg), prefix)
+                  replace(options, max_size=max(win.width, win.height), coarse_to_fine=False,
+                          max_evaluations=options.refine_evaluations),
+                  renderer, refiner, progress, None if fg is None else win.mask(fg), prefix)
         spent.append((mf, cand))
         grabcut_seconds += mf.grabcut_seconds
         fits.append((_Fit(win.full_camera(mf.camera), mf.levels, win.full_mask(mf.foreground), 0.0), cand))
@@ -804,6 +814,8 @@ def register(
         if options.optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {options.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
         optimizer = OPTIMIZERS[options.optimizer]()
+    if options.refine_optimizer not in OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {options.refine_optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if options.parametrization not in PARAMETRIZATIONS:
         raise ValueError(f"unknown parametrization {options.parametrization!r}; choose one of {', '.join(PARAMETRIZATIONS)}")
     if options.loss not in LOSSES:
