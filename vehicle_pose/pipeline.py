@@ -733,8 +733,11 @@ def _search_pass(
             final_fg = _resegment(work, model, best_mid.camera, options, renderer, None, max(Wf, Hf))
             final_fg = best_mid.foreground if final_fg is None else final_fg
         grabcut_seconds += time.perf_counter() - t
-        fit = _fit(work, model, best_mid.camera, replace(options, coarse_to_fine=False), renderer, optimizer,
-                   progress, final_fg, f"{stage}final: ", step_scale=0.4)
+        # The final level polishes a pose within a pixel or two, as the finest level of the
+        # hinted chain does, with its budget.
+        fit = _fit(work, model, best_mid.camera,
+                   replace(options, coarse_to_fine=False, max_evaluations=options.fine_evaluations),
+                   renderer, optimizer, progress, final_fg, f"{stage}final: ", step_scale=0.4)
         spent.append((fit, best_cand))
         levels = [*best_mid.levels, *fit.levels]
     else:
