@@ -108,8 +108,9 @@ class RegistrationOptions:
     max_evaluations : int
         Loss evaluations allowed per level (but the finest, see ``fine_evaluations``).
     fine_evaluations : int
-        Loss evaluations allowed at the finest level when coarser levels ran before it: it
-        starts within a pixel or two and polishes. On the photoreal cases 150 registered as
+        Loss evaluations allowed at the finest level when coarser levels ran before it, and at
+        the final level of a registration without a start camera: it starts within a pixel or
+        two and polishes. On the photoreal cases 150 registered as
         well as 400; on the synthetic sub-pixel cases the error still falls with more (one
         case: 1.03 px at 150, 0.57 at 250, 0.47 at 400), hence 250.
     side : str
