@@ -123,6 +123,10 @@ def test_cma_es_keeps_to_its_budget_and_never_ends_above_its_start():
     res = CMAES()(f, np.zeros(7), np.full(7, 0.3), max_evaluations=100)
     assert len(calls) == res.evaluations <= 100
     np.testing.assert_array_equal(res.x, np.zeros(7))
+    for budget in (100, 105, 9):
+        # Whole generations of 9 (4 + 3 ln 7) samples after the start, never past the budget.
+        res = CMAES()(rotated_valley, np.zeros(7), np.full(7, 0.3), max_evaluations=budget)
+        assert budget - 9 < res.evaluations <= budget
 
 
 def test_cma_es_repeats_itself_and_restores_the_global_generator():

@@ -247,7 +247,8 @@ class CMAES:
         state = np.random.get_state()
         try:
             es = cma.CMAEvolutionStrategy(np.zeros(len(x0)), self.sigma, options)
-            while not es.stop() and counted.count < max_evaluations:
+            # Only whole generations, so the budget holds exactly.
+            while not es.stop() and counted.count + es.popsize <= max_evaluations:
                 zs = es.ask()
                 es.tell(zs, [counted(x0 + np.asarray(z) * s) for z in zs])
         finally:
