@@ -209,7 +209,7 @@ class RegistrationOptions:
     screen_evaluations: int = 300
     window_margin: float | None = WINDOW_MARGIN
     refine_optimizer: str = "cma-es"
-    refine_evaluations: int = 700
+    refine_evaluations: int = 1000
     second_pass: bool = True
     wheels: bool = True
     start_focals: tuple[float, ...] = (0.8, 3.0)
