@@ -59,6 +59,11 @@ class _Counted:
             self.best_f, self.best_x = f, np.array(x, dtype=np.float64)
         return f
 
+    def result(self, restarts: int = 0) -> OptimizeResult:
+        """The best point seen, its value and the evaluation count."""
+        assert self.best_x is not None
+        return OptimizeResult(self.best_x, self.best_f, self.count, restarts)
+
 
 @dataclass(frozen=True)
 class NelderMeadRestarts:
@@ -159,8 +164,7 @@ class NelderMeadRestarts:
             if restarts > 0 and before - best < self.min_gain:
                 break
             scale *= self.shrink
-        assert counted.best_x is not None
-        return OptimizeResult(counted.best_x, counted.best_f, counted.count, max(restarts, 0))
+        return counted.result(max(restarts, 0))
 
     def _pattern(self, counted: _Counted, x: FloatArray, step: FloatArray, max_evaluations: int) -> None:
         best = counted.best_f
@@ -196,8 +200,7 @@ class Powell:
             method="Powell",
             options={"xtol": self.xtol, "ftol": self.ftol, "maxfev": max_evaluations, "direc": np.eye(len(x0))},
         )
-        assert counted.best_x is not None
-        return OptimizeResult(counted.best_x, counted.best_f, counted.count, 0)
+        return counted.result()
 
 
 @dataclass(frozen=True)
@@ -235,7 +238,6 @@ class CMAES:
         x0 = np.asarray(x0, dtype=np.float64)
         counted(x0)
         options: dict[str, object] = {
-            "maxfevals": max(1, max_evaluations - 1),
             "verbose": -9,
             "tolx": self.xtol,
             "tolfun": self.ftol,
@@ -253,8 +255,7 @@ class CMAES:
                 es.tell(zs, [counted(x0 + np.asarray(z) * s) for z in zs])
         finally:
             np.random.set_state(state)
-        assert counted.best_x is not None
-        return OptimizeResult(counted.best_x, counted.best_f, counted.count, 0)
+        return counted.result()
 
 
 OPTIMIZERS: dict[str, Callable[[], Optimizer]] = {

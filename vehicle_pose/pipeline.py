@@ -110,9 +110,9 @@ class RegistrationOptions:
     fine_evaluations : int
         Loss evaluations allowed at the finest level when coarser levels ran before it, and at
         the final level of a registration without a start camera: it starts within a pixel or
-        two and polishes. On the photoreal cases 150 registered as
-        well as 400; on the synthetic sub-pixel cases the error still falls with more (one
-        case: 1.03 px at 150, 0.57 at 250, 0.47 at 400), hence 250.
+        two and polishes. On the photoreal cases 150 registered as well as 400; on the
+        synthetic sub-pixel cases the error still falls with more (one case: 1.03 px at 150,
+        0.57 at 250, 0.47 at 400), hence 250.
     side : str
         ``"auto"`` (from the start pose), ``"left"`` or ``"right"``: the visible side.
     parametrization : str
@@ -366,8 +366,9 @@ def _fit(
 ) -> _Fit:
     """Register from one start camera on ``work`` (already at working size).
 
-    ``step_scale`` scales the first level's simplex. ``box`` (working-size pixels), the client's box of the vehicle, widens what GrabCut may
-    call foreground beyond the grown start silhouette.
+    ``step_scale`` scales the first level's simplex. ``box`` (working-size pixels), the
+    client's box of the vehicle, widens what GrabCut may call foreground beyond the grown start
+    silhouette.
     """
     Hf, Wf = work.shape[:2]
     start = start.scaled(Wf, Hf)
@@ -505,6 +506,13 @@ def _probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
     if not lo <= camera.focal <= hi:
         factors.append(float(np.sqrt(lo * hi)) / camera.focal)
     return factors
+
+
+def _named_optimizer(name: str) -> Optimizer:
+    """A fresh optimiser from :data:`OPTIMIZERS`; ValueError for an unknown name."""
+    if name not in OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {name!r}; choose one of {', '.join(OPTIMIZERS)}")
+    return OPTIMIZERS[name]()
 
 
 def _window_margin(options: RegistrationOptions) -> float | None:
@@ -710,7 +718,7 @@ def _search_pass(
     longer = max(Wf, Hf)
     mids = [c for c in options.coarse_sizes if options.screen_size < c < 0.75 * longer]
     fits = []
-    refiner = OPTIMIZERS[options.refine_optimizer]()
+    refiner = _named_optimizer(options.refine_optimizer)
     for k, (_, cam, cand) in enumerate(chosen):
         prefix = stage + (f"refine {k + 1}/{len(chosen)}: " if len(chosen) > 1 else "refine: ")
         win = Window.around(_union(region.box, _projected_box(model, cam)), Wf, Hf,
@@ -815,11 +823,8 @@ def register(
     H0, W0 = photo.shape[:2]
     renderer = renderer if renderer is not None else Renderer()
     if optimizer is None:
-        if options.optimizer not in OPTIMIZERS:
-            raise ValueError(f"unknown optimizer {options.optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
-        optimizer = OPTIMIZERS[options.optimizer]()
-    if options.refine_optimizer not in OPTIMIZERS:
-        raise ValueError(f"unknown optimizer {options.refine_optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+        optimizer = _named_optimizer(options.optimizer)
+    _named_optimizer(options.refine_optimizer)  # an unknown name fails before any work
     if options.parametrization not in PARAMETRIZATIONS:
         raise ValueError(f"unknown parametrization {options.parametrization!r}; choose one of {', '.join(PARAMETRIZATIONS)}")
     if options.loss not in LOSSES:
