@@ -32,6 +32,7 @@ __all__ = [
     "SearchGrid",
     "parse_bbox",
     "fit_to_box",
+    "box_overflow",
     "view_camera",
     "refocus",
     "score_cameras",
@@ -99,12 +100,15 @@ def rotation_angle(a: FloatArray, b: FloatArray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box, *, rounds: int = 3) -> Camera:
+def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box, *, rounds: int = 3,
+               clip: bool = False) -> Camera:
     """The camera moved along and across its axis so that ``points`` project onto ``box``.
 
     The rotation and intrinsics stay; ``anchor`` (a point of the model, its centre) keeps its
     direction while the depth is scaled to match the box's size and the image shifted to match
-    its centre.
+    its centre. With ``clip`` the projection is cut to the image before it is compared with
+    the box, so a box that a photo's border cuts (a vehicle partly out of the frame) is matched
+    by a projection cut the same way rather than shrunk into the photo.
     """
     K, R = camera.K, camera.R
     bw, bh = max(box[2] - box[0], 1.0), max(box[3] - box[1], 1.0)
@@ -121,11 +125,41 @@ def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box,
         if not np.all(np.isfinite(uv)):
             depth *= 2.0
             continue
-        span = uv.max(0) - uv.min(0)
+        lo, hi = uv.min(0), uv.max(0)
+        if clip:
+            size = np.array([camera.width - 1.0, camera.height - 1.0])
+            lo, hi = np.clip(lo, 0.0, size), np.clip(hi, 0.0, size)
+        span = hi - lo
         depth *= float(np.sqrt(max(span[0], 1e-6) / bw * max(span[1], 1e-6) / bh))
-        pix = pix + bc - 0.5 * (uv.min(0) + uv.max(0))
+        pix = pix + bc - 0.5 * (lo + hi)
     ray = np.linalg.solve(K, np.array([pix[0], pix[1], 1.0]))
     return Camera(K, R, depth * ray - R @ anchor, camera.width, camera.height)
+
+
+def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float) -> float:
+    """How far ``points`` project beyond ``box`` grown by ``margin`` of its size on each side,
+    summed over the four sides in units of the box's width or height (0 inside).
+
+    A side of the box on the photo's border says nothing (the vehicle may go on beyond the
+    frame) and is not checked; points behind the camera count as far out. Falling short of
+    the box is not counted: a box drawn by hand is often loose, and measured on the real and
+    photoreal cases a two-sided term cost accuracy on both (docs/engine.md).
+    """
+    uv = camera.project(points)
+    if not np.all(np.isfinite(uv)):
+        return 4.0
+    bw, bh = max(box[2] - box[0], 1.0), max(box[3] - box[1], 1.0)
+    lo, hi = uv.min(0), uv.max(0)
+    out = 0.0
+    if box[0] > 1.0:
+        out += max(0.0, box[0] - margin * bw - lo[0]) / bw
+    if box[2] < camera.width - 2.0:
+        out += max(0.0, hi[0] - box[2] - margin * bw) / bw
+    if box[1] > 1.0:
+        out += max(0.0, box[1] - margin * bh - lo[1]) / bh
+    if box[3] < camera.height - 2.0:
+        out += max(0.0, hi[1] - box[3] - margin * bh) / bh
+    return float(out)
 
 
 def view_camera(

@@ -21,7 +21,9 @@ from .initialize import (
     WINDOW_MARGIN,
     Box,
     Candidate,
+    box_overflow,
     distinct,
+    fit_to_box,
     parse_bbox,
     refocus,
     rotation_angle,
@@ -31,6 +33,7 @@ from .initialize import (
 )
 from .library import VehicleModel
 from .loss import make_target
+from .edges import EdgeLoss
 from .losses import LOSSES, make_loss
 from .optimize import OPTIMIZERS, Optimizer, OptimizeResult
 from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
@@ -92,6 +95,21 @@ class RegistrationOptions:
         With a start camera and a box, GrabCut may also claim the box grown by this fraction
         of its diagonal: a rough start pose often leaves part of the vehicle outside its
         grown silhouette, and GrabCut would call that part certain background.
+    fit_start_to_box : bool
+        With a start camera and a box, first move and scale the start (rotation and focal
+        length kept) so that the model's projection, cut to the photo, fills the box.
+    box_weight : float
+        With a start camera and a box, the loss is raised by this times how far the model's
+        projection goes beyond the box grown by ``box_tolerance`` of its size
+        (:func:`~vehicle_pose.initialize.box_overflow`; sides on the photo's border are free).
+    box_tolerance : float
+        How far, as a fraction of the box's size, the projection may pass the box free of cost
+        (an annotated box is loose by a few pixels, a CAD model not exactly the car).
+    edge_weight : float
+        The loss is raised by this times the directional chamfer cost of the rendered model's
+        edges against the photo's edges near the foreground (:class:`~vehicle_pose.edges.EdgeLoss`,
+        in [0, 1]): outline, window frames and lights hold the model where reflections in the
+        paint and glass leave the invariant loss blind. 0 leaves the loss alone.
     resegment : bool
         Run GrabCut again after each coarse level, seeded by that level's pose with
         ``resegment_margin`` and its shrunk silhouette as certain foreground: a better pose
@@ -195,6 +213,10 @@ class RegistrationOptions:
     grabcut: bool = True
     grabcut_margin: float = 0.12
     box_margin: float = 0.04
+    fit_start_to_box: bool = False
+    box_weight: float = 0.0
+    box_tolerance: float = 0.05
+    edge_weight: float = 0.0
     resegment: bool = True
     resegment_margin: float = 0.08
     resegment_iterations: int = 2
@@ -226,7 +248,8 @@ class RegistrationOptions:
 
 @dataclass(frozen=True)
 class LevelReport:
-    """What one pyramid level did."""
+    """What one pyramid level did. ``loss`` is the named loss at the level's pose,
+    ``objective`` what the search minimised: the loss plus the edge and box terms."""
 
     width: int
     height: int
@@ -235,6 +258,7 @@ class LevelReport:
     restarts: int
     loss: float
     seconds: float
+    objective: float
 
 
 @dataclass
@@ -349,6 +373,10 @@ class _Fit:
     def loss(self) -> float:
         return self.levels[-1].loss
 
+    @property
+    def objective(self) -> float:
+        return self.levels[-1].objective
+
 
 def _fit(
     work: npt.NDArray[np.uint8],
@@ -396,6 +424,7 @@ def _fit(
 
     camera = start
     levels: list[LevelReport] = []
+    box_points = model.mesh.sample_points(600)
     area = max(float(silhouette.sum()), 1.0)
     fine = min(1.0, float(np.sqrt(options.max_pixels / area))) if options.max_pixels > 0 else 1.0
     sizes = _level_sizes(max(8, round(Wf * fine)), max(8, round(Hf * fine)), options)
@@ -406,7 +435,13 @@ def _fit(
         mesh = renderer.exterior(model.lod(_face_budget(float(silhouette.sum()) * (w * h) / (Wf * Hf), options)))
         target = make_target(_resize(work, w, h), _resize_mask(foreground, w, h), color=options.color)
         loss_fn = make_loss(options.loss, target)
+        edge_fn = None
+        if options.edge_weight > 0:
+            edge_fn = EdgeLoss(_resize(work, w, h), foreground=target.foreground)
         stage = f"{stage_prefix}level {li + 1}/{len(sizes)} ({w}x{h})"
+        level_box = None
+        if box is not None and options.box_weight > 0:
+            level_box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
         counter = [0]
 
         def search(reference: Camera, budget: int) -> tuple[OptimizeResult, Parametrization]:
@@ -425,7 +460,12 @@ def _fit(
                     cam = params.camera(x)
                 except (PoseError, CameraError):
                     return _INVALID
-                value = float(loss_fn(renderer.render(mesh, cam)))
+                frame = renderer.render(mesh, cam)
+                value = float(loss_fn(frame))
+                if edge_fn is not None:
+                    value += options.edge_weight * edge_fn(frame)
+                if level_box is not None:
+                    value += options.box_weight * box_overflow(cam, box_points, level_box, options.box_tolerance)
                 counter[0] += 1
                 if progress is not None and counter[0] % 20 == 0:
                     progress(stage, counter[0], value)
@@ -451,7 +491,10 @@ def _fit(
         if len(runs) > 1:
             res = replace(res, evaluations=sum(r.evaluations for r, _ in runs), restarts=sum(r.restarts for r, _ in runs))
         camera = params.camera(res.x).scaled(Wf, Hf)
-        levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, res.fun, time.perf_counter() - t))
+        loss = res.fun
+        if edge_fn is not None or level_box is not None:
+            loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
+        levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t, res.fun))
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
         if segment_again and li < len(sizes) - 1:
@@ -701,8 +744,8 @@ def _search_pass(
             continue
         grabcut_seconds += sf.grabcut_seconds
         spent.append((sf, cand))
-        screened.append((sf.loss, window.full_camera(sf.camera), cand))
-        listed.append(cand.to_dict() | {"screened_loss": sf.loss})
+        screened.append((sf.objective, window.full_camera(sf.camera), cand))
+        listed.append(cand.to_dict() | {"screened_loss": sf.objective})
     if not screened:
         raise PoseError("no start pose puts the model in view of the photo")
     screened.sort(key=lambda e: e[0])
@@ -730,7 +773,7 @@ def _search_pass(
         spent.append((mf, cand))
         grabcut_seconds += mf.grabcut_seconds
         fits.append((_Fit(win.full_camera(mf.camera), mf.levels, win.full_mask(mf.foreground), 0.0), cand))
-    best_mid, best_cand = min(fits, key=lambda e: e[0].loss)
+    best_mid, best_cand = min(fits, key=lambda e: e[0].objective)
     if mids:
         t = time.perf_counter()
         if fg is not None:
@@ -758,11 +801,11 @@ def _search_pass(
     others = [e[0] for e in screened if rotation_angle(e[1].R, fit.camera.R) >= 15.0]
     near = [e for e in screened if e is not won and "focal_widths" not in e[2].detail
             and rotation_angle(e[1].R, fit.camera.R) < 15.0]
-    rivals = [f.loss for f, _ in fits if rotation_angle(f.camera.R, best_mid.camera.R) >= 15.0]
+    rivals = [f.objective for f, _ in fits if rotation_angle(f.camera.R, best_mid.camera.R) >= 15.0]
     plain = [e for e in screened if "focal_widths" not in e[2].detail]
     checks = {
         "margin": (
-            (min(rivals) - best_mid.loss) / max(min(rivals), 1e-9) if rivals
+            (min(rivals) - best_mid.objective) / max(min(rivals), 1e-9) if rivals
             else (min(others) - won[0]) / max(min(others), 1e-9) if others else 1.0
         ),
         "agreement": len(near) / max(1, len(plain) - 1),
@@ -852,6 +895,11 @@ def register(
     if init_camera is not None:
         source, method = "init_camera", "given"
         start = init_camera.scaled(Wf, Hf)
+        if rect is not None and options.fit_start_to_box:
+            # A box is far more precise than a rough pose about where the vehicle is and how
+            # large it looks: the start keeps its rotation and focal length and is moved and
+            # scaled to fill it (docs/engine.md).
+            start = fit_to_box(start, model.mesh.sample_points(600), model.mesh.sphere[0], rect, rounds=5, clip=True)
         timings["start"] = 0.0
         fit = _fit(work, model, start, options, renderer, optimizer, progress, fg, box=rect)
         spent.append((fit, None))
@@ -876,7 +924,7 @@ def register(
             spent += again.spent
             grabcut_seconds += again.grabcut_seconds
             timings["second_pass"] = time.perf_counter() - t
-            if again.fit.loss < fit.loss:
+            if again.fit.objective < fit.objective:
                 fit, levels, checks, listed = again.fit, again.levels, again.checks, again.listed
                 start, method = again.candidate.camera, again.candidate.source
                 checks |= _fit_checks(work, model, fit, region, options, renderer)

@@ -16,10 +16,11 @@ import numpy.typing as npt
 
 from .camera import Camera
 from .library import VehicleModel
-from .mesh import Mesh
+from .mesh import KINDS, Mesh
 from .render import Renderer
 
-__all__ = ["Lighting", "LIGHTINGS", "synthesize", "random_framed_view"]
+__all__ = ["Lighting", "LIGHTINGS", "HAZARDS", "synthesize", "synthesize_hazard", "border_crop_camera",
+           "random_framed_view"]
 
 
 @dataclass(frozen=True)
@@ -79,6 +80,106 @@ def synthesize(
     img[mask] = colour[mask]
     img += rng.normal(0.0, noise, img.shape)
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), mask
+
+
+HAZARDS: tuple[str, ...] = ("mirror-floor", "sky-on-glass", "second-car", "border-crop", "specular")
+"""What real photos have and :func:`synthesize` lacks, one at a time (:func:`synthesize_hazard`)."""
+
+
+def _smooth_texture(height: int, width: int, rng: np.random.Generator, cells: int) -> npt.NDArray[np.float64]:
+    small = rng.random((max(2, cells * height // max(width, 1)), cells))
+    return cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC)
+
+
+def synthesize_hazard(
+    mesh: Mesh,
+    camera: Camera,
+    hazard: str,
+    *,
+    lighting: Lighting = LIGHTINGS["front"],
+    renderer: Renderer | None = None,
+    seed: int = 0,
+) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.bool_], Camera]:
+    """A synthetic photo with one difficulty of real photos, the vehicle's true mask and its
+    true camera.
+
+    ``hazard`` is one of :data:`HAZARDS`:
+
+    - ``mirror-floor``: the vehicle's mirror image below it, dimmed, as on a polished floor;
+    - ``sky-on-glass``: a bright cloudy sky over every glass pixel instead of its shading;
+    - ``second-car``: a second copy of the mesh, turned and differently lit, partly behind it;
+    - ``border-crop``: the image moved sideways so that the photo's right border cuts 15 %
+      of the vehicle's width (:func:`border_crop_camera`; the true camera returned is the
+      moved one);
+    - ``specular``: a sharp white highlight of the light on the paint, saturated.
+    """
+    if hazard not in HAZARDS:
+        raise ValueError(f"unknown hazard {hazard!r}; choose one of {', '.join(HAZARDS)}")
+    r = renderer if renderer is not None else Renderer()
+    rng = np.random.default_rng(seed + 1000)
+    if hazard == "border-crop":
+        cropped = border_crop_camera(mesh, camera)
+        return (*synthesize(mesh, cropped, lighting=lighting, renderer=r, seed=seed), cropped)
+    photo, mask = synthesize(mesh, camera, lighting=lighting, renderer=r, seed=seed)
+    img = photo.astype(np.float64) / 255.0
+    if hazard == "mirror-floor":
+        rows = np.flatnonzero(mask.any(axis=1))
+        bottom = int(rows.max())
+        flipped_img, flipped_mask = img[::-1], mask[::-1]
+        # Row y below the bottom row shows row 2 * bottom - y of the vehicle.
+        shift = camera.height - 1 - 2 * bottom
+        src = np.arange(camera.height) - shift
+        ok = (src >= 0) & (src < camera.height) & (np.arange(camera.height) > bottom)
+        mirror_img = np.zeros_like(img)
+        mirror_mask = np.zeros_like(mask)
+        mirror_img[ok] = flipped_img[src[ok]]
+        mirror_mask[ok] = flipped_mask[src[ok]]
+        mirror_mask &= ~mask
+        img[mirror_mask] = 0.55 * mirror_img[mirror_mask] + 0.45 * img[mirror_mask]
+    elif hazard == "sky-on-glass":
+        frame = r.render(mesh, camera)
+        glass = frame.full(frame.labels == KINDS.index("glass") + 1)
+        sky = np.linspace(0.75, 0.98, camera.height)[:, None] + 0.25 * (_smooth_texture(camera.height, camera.width, rng, 8) - 0.5)
+        tint = np.array([0.85, 0.92, 1.0])
+        img[glass] = np.clip(sky[glass][:, None] * tint, 0.0, 1.0)
+    elif hazard == "second-car":
+        c = mesh.sphere[0]
+        depth = float((camera.R @ c + camera.t)[2])
+        # Behind and to one side: the other car stands 1.6 sphere radii further away, shifted
+        # by about three quarters of its projected width, turned 40 degrees about the camera's vertical axis.
+        angle = np.radians(40.0 if rng.random() < 0.5 else -40.0)
+        turn = np.array([[np.cos(angle), 0.0, np.sin(angle)], [0.0, 1.0, 0.0], [-np.sin(angle), 0.0, np.cos(angle)]])
+        R2 = turn @ camera.R
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        centre2 = np.array([side * 1.5 * mesh.sphere[1], 0.0, depth + 1.6 * mesh.sphere[1]])
+        t2 = centre2 - R2 @ c
+        other = Camera(camera.K, R2, t2, camera.width, camera.height)
+        other_photo, other_mask = synthesize(mesh, other, lighting=LIGHTINGS["side"], renderer=r, seed=seed + 1)
+        behind = other_mask & ~mask
+        img[behind] = other_photo[behind].astype(np.float64) / 255.0
+    elif hazard == "specular":
+        frame = r.render(mesh, camera)
+        attrs = frame.full(np.where(frame.labels[..., None] > 0, frame.attrs, 0.0)).astype(np.float64)
+        n = attrs[..., 1:] / np.maximum(attrs[..., :1], 1e-9)
+        light = np.asarray(lighting.direction, np.float64)
+        light /= np.linalg.norm(light)
+        # Blinn-Phong with the viewer on the -z axis of the camera frame (normals face it).
+        half = light + np.array([0.0, 0.0, -1.0])
+        half /= np.linalg.norm(half)
+        spec = np.clip(n @ half, 0.0, 1.0) ** 16
+        body = frame.full(frame.labels == KINDS.index("body") + 1)
+        img[body] += 1.5 * spec[body][:, None]
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), mask, camera
+
+
+def border_crop_camera(mesh: Mesh, camera: Camera, fraction: float = 0.15) -> Camera:
+    """``camera`` with its principal point moved so that the photo's right border cuts
+    ``fraction`` of the vehicle's projected width."""
+    uv = camera.project(mesh.vertices)
+    lo, hi = float(uv[:, 0].min()), float(uv[:, 0].max())
+    K = camera.K.copy()
+    K[0, 2] += (camera.width - 1) - (hi - fraction * (hi - lo))
+    return Camera(K, camera.R, camera.t, camera.width, camera.height)
 
 
 

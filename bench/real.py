@@ -1,0 +1,189 @@
+"""Real photos: rotation error against human pose annotations, from a start camera or no hint.
+
+Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|none] [--cases N]
+       [--shared ../shared/real] [--option KEY=VALUE ...] [--tag TAG]
+
+The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were
+made with; rotation only). Per case: the start's and the result's rotation error (the angle of
+``R_est R_gt^T``, degrees), the loss, the confidence and the time. Summary: the median error,
+Acc pi/6 (share within 30 degrees), the share within 10 degrees, the cases that end more than
+2 degrees further from the annotation than they started, the median time. Writes
+``bench/results/real_<start>[_TAG].json`` and a contact sheet ``real_<start>[_TAG].png`` with
+the start (left) and final (right) outline of every case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+from accuracy import parse_options
+from common import RESULTS, table, write_report
+
+from vehicle_pose.camera import Camera
+from vehicle_pose.initialize import rotation_angle as rotation_error
+from vehicle_pose.library import VehicleModel, model_from_mesh
+from vehicle_pose.overlay import draw_overlay, save_png
+from vehicle_pose.photo import load_photo
+from vehicle_pose.pipeline import RegistrationOptions, register
+from vehicle_pose.render import Renderer
+
+WORSE_DEG = 2.0
+"""A case that ends more than this many degrees further from the annotation than it started."""
+
+
+def load_models(shared: Path) -> dict[str, VehicleModel]:
+    out = {}
+    for entry in json.loads((shared / "models.json").read_text()):
+        m = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"], units="m",
+                            meters_per_unit=entry["meters_per_unit"])
+        out[entry["id"]] = m
+    return out
+
+
+def annotated_start(model: VehicleModel, init: Camera, R_gt: np.ndarray) -> Camera:
+    """``init`` turned to the annotated rotation about the model's centre (the centre's image
+    and depth kept): a start at the annotation, to see whether the registration stays there."""
+    centre = model.mesh.sphere[0]
+    c = init.to_camera(centre[None])[0]
+    return Camera(init.K, R_gt, c - R_gt @ centre, init.width, init.height)
+
+
+def box_iou(model: VehicleModel, camera: Camera, box: list[float]) -> float:
+    """IoU of the model's projected box (clipped to the image) with the annotated box: a pose
+    can turn the right way yet cover half the car."""
+    uv = camera.project(model.mesh.sample_points(2000))
+    if not np.all(np.isfinite(uv)):
+        return 0.0
+    a = [max(0.0, uv[:, 0].min()), max(0.0, uv[:, 1].min()),
+         min(camera.width - 1.0, uv[:, 0].max()), min(camera.height - 1.0, uv[:, 1].max())]
+    iw = max(0.0, min(a[2], box[2]) - max(a[0], box[0]))
+    ih = max(0.0, min(a[3], box[3]) - max(a[1], box[1]))
+    inter = iw * ih
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (box[2] - box[0]) * (box[3] - box[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def summarise(label: dict, runs: list[dict]) -> dict:
+    final = np.array([r["final_deg"] for r in runs])
+    start = np.array([r["start_deg"] for r in runs if r["start_deg"] is not None] or [np.nan])
+    wrong = final > 30.0
+    flagged = np.array([bool(r["failed"]) for r in runs])
+    return {
+        **label,
+        "cases": len(runs),
+        "median start deg": float(np.median(start)),
+        "median deg": float(np.median(final)),
+        "median box iou": float(np.median([r["box_iou"] for r in runs])),
+        "acc pi/6 %": 100.0 * float(np.mean(final <= 30.0)),
+        "within 10 %": 100.0 * float(np.mean(final <= 10.0)),
+        "worse by 2": int(sum(r["start_deg"] is not None and r["final_deg"] > r["start_deg"] + WORSE_DEG for r in runs)),
+        "flagged": int(flagged.sum()),
+        "wrong unflagged": int((wrong & ~flagged).sum()),
+        "right flagged": int((~wrong & flagged).sum()),
+        "median s": float(np.median([r["seconds"] for r in runs])),
+    }
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    out = img.copy()
+    cv2.rectangle(out, (0, 0), (out.shape[1], 16), (0, 0, 0), -1)
+    cv2.putText(out, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def contact_sheet(tiles: list[tuple[np.ndarray, np.ndarray]], width: int = 360) -> np.ndarray:
+    """Rows of (start, final) overlays, each reduced to ``width`` pixels."""
+    rows = []
+    for left, right in tiles:
+        h = max(1, round(left.shape[0] * width / left.shape[1]))
+        pair = [cv2.resize(im, (width, h), interpolation=cv2.INTER_AREA) for im in (left, right)]
+        rows.append(np.concatenate([pair[0], np.full((h, 6, 3), 255, np.uint8), pair[1]], axis=1))
+    w = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 6), (0, w - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
+    return np.concatenate(rows, axis=0)
+
+
+def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
+        use_box: bool = True) -> tuple[dict, np.ndarray]:
+    models = load_models(shared)
+    renderer = Renderer()
+    runs, tiles = [], []
+    folders = sorted((shared / "cases").iterdir())[:cases]
+    for case in folders:
+        gt = json.loads((case / "gt.json").read_text())
+        model = models[gt["model"]]
+        photo = load_photo(case / "photo.jpg")
+        R_gt = np.asarray(gt["R"], float)
+        bbox = json.loads((case / "init.json").read_text())["bbox"]
+        init, box = None, None
+        if start_name != "none":
+            hint = json.loads((case / ("init.json" if start_name == "gt" else start_name)).read_text())
+            init = Camera.from_dict(hint)
+            box = hint.get("bbox") if use_box else None
+            if start_name == "gt":
+                init = annotated_start(model, init, R_gt)
+        res = register(photo, model, init_camera=init, bbox=box, options=options, renderer=renderer)
+        start_cam = res.start_camera
+        r = {
+            "case": case.name,
+            "width": photo.shape[1],
+            "height": photo.shape[0],
+            "start_deg": rotation_error(init.R, R_gt) if init is not None else None,
+            "search_start_deg": rotation_error(start_cam.R, R_gt),
+            "final_deg": rotation_error(res.camera.R, R_gt),
+            "box_iou": box_iou(model, res.camera, bbox),
+            "focal_widths": res.camera.focal / photo.shape[1],
+            "loss": res.loss,
+            "confidence": res.confidence,
+            "failed": res.failed,
+            "seconds": res.seconds,
+            "evaluations": res.evaluations,
+            "camera": res.camera.to_dict(),
+            "checks": res.checks,
+        }
+        runs.append(r)
+        start_txt = f"{r['start_deg']:.1f}" if r["start_deg"] is not None else f"({r['search_start_deg']:.1f})"
+        print(f"{case.name} {photo.shape[1]:5d}x{photo.shape[0]:<4d} start {start_txt:>6s} deg -> "
+              f"{r['final_deg']:6.1f} deg  box {r['box_iou']:.2f}  f {r['focal_widths']:.2f} W  loss {r['loss']:.4f}  "
+              f"conf {'-' if r['confidence'] is None else format(r['confidence'], '.2f')} "
+              f"{'FLAGGED ' if r['failed'] else ''}{r['seconds']:.1f} s", flush=True)
+        left = draw_overlay(photo, model.lod(16384), start_cam, renderer=renderer, wheels=model.wheels)
+        right = draw_overlay(photo, model.lod(16384), res.camera, renderer=renderer, wheels=model.wheels)
+        tiles.append((_label(left, f"{case.name} start {start_txt}"),
+                      _label(right, f"final {r['final_deg']:.1f} deg box {r['box_iou']:.2f}{' FLAGGED' if r['failed'] else ''}")))
+    rows = [summarise({"start": start_name}, runs)]
+    print(table(rows, list(rows[0])))
+    return {"rows": rows, "runs": runs}, contact_sheet(tiles)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "real")
+    ap.add_argument("--start", default="init.json", help="start file of each case (init.json, init_box.json), gt (init.json turned to the "
+                    "annotated rotation) or none")
+    ap.add_argument("--cases", type=int, default=None, help="only the first N cases")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a RegistrationOptions field, e.g. loss=invariant (repeatable)")
+    ap.add_argument("--no-box", action="store_true", help="give only the start camera, not the start file's box")
+    ap.add_argument("--tag", default="", help="suffix of the report's name")
+    args = ap.parse_args()
+    if not (args.shared / "cases").is_dir():
+        print(f"no real cases at {args.shared}; skipped")
+        return
+    options = parse_options(args.option)
+    name = "real_" + args.start.removesuffix(".json") + (f"_{args.tag}" if args.tag else "")
+    data, sheet = run(args.shared, args.start, options, args.cases, use_box=not args.no_box)
+    data["options"] = vars(options)
+    data["box"] = not args.no_box
+    print(write_report(name, data))
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    save_png(RESULTS / f"{name}.png", sheet)
+    print(RESULTS / f"{name}.png")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,74 @@
+"""The client's box: the start moved to fill it, and the cost of a pose that leaves it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import view
+
+from vehicle_pose.camera import Camera
+from vehicle_pose.initialize import box_overflow, fit_to_box, rotation_angle
+from vehicle_pose.synth import border_crop_camera
+
+
+def _projected_box(camera: Camera, points: np.ndarray, clip: bool = False) -> np.ndarray:
+    uv = camera.project(points)
+    lo, hi = uv.min(0), uv.max(0)
+    if clip:
+        size = np.array([camera.width - 1.0, camera.height - 1.0])
+        lo, hi = np.clip(lo, 0, size), np.clip(hi, 0, size)
+    return np.concatenate([lo, hi])
+
+
+def _moved(camera: Camera, shift: np.ndarray) -> Camera:
+    return Camera(camera.K, camera.R, camera.t + shift, camera.width, camera.height)
+
+
+def test_fit_to_box_recovers_place_and_size_and_keeps_rotation(sedan):
+    truth = view(sedan, 70.0, 12.0, width=640, height=480, focal=900.0)
+    points = sedan.mesh.sample_points(600)
+    box = tuple(_projected_box(truth, points))
+    start = _moved(truth, np.array([0.6, -0.3, 2.5]))  # off to one side and too small
+    fitted = fit_to_box(start, points, sedan.mesh.sphere[0], box, rounds=5)
+    assert np.abs(_projected_box(fitted, points) - box).max() < 2.0
+    assert rotation_angle(fitted.R, truth.R) < 1e-9 and np.allclose(fitted.K, truth.K)
+
+
+def test_a_box_cut_by_the_border_is_matched_by_a_projection_cut_the_same_way(sedan):
+    truth = border_crop_camera(sedan.mesh, view(sedan, 70.0, 12.0, width=640, height=480, focal=900.0), 0.3)
+    points = sedan.mesh.sample_points(600)
+    box = tuple(_projected_box(truth, points, clip=True))
+    assert box[2] == pytest.approx(639.0)
+    start = _moved(truth, np.array([-0.4, 0.2, 1.5]))
+    clipped = fit_to_box(start, points, sedan.mesh.sphere[0], box, rounds=5, clip=True)
+    plain = fit_to_box(start, points, sedan.mesh.sphere[0], box, rounds=5)
+    # The plain fit shrinks the whole vehicle into the box; the clipped one lets it run on
+    # beyond the border, as in the photo.
+    assert np.abs(_projected_box(clipped, points, clip=True) - box).max() < 0.03 * (box[2] - box[0])
+    size = lambda cam: np.ptp(cam.project(points)[:, 0])  # noqa: E731
+    assert size(clipped) == pytest.approx(size(truth), rel=0.03)
+    assert size(plain) < 0.85 * size(truth)
+
+
+def test_box_overflow_counts_only_what_leaves_the_grown_box(sedan):
+    cam = view(sedan, 30.0, 12.0, width=640, height=480, focal=900.0)
+    points = sedan.mesh.sample_points(600)
+    x0, y0, x1, y1 = _projected_box(cam, points)
+    w = x1 - x0
+    assert box_overflow(cam, points, (x0, y0, x1, y1), 0.0) == pytest.approx(0.0, abs=1e-9)
+    # A box 10 % narrower on the right: 10 % of its width out, free within a 20 % tolerance.
+    narrow = (x0, y0, x1 - 0.1 * w, y1)
+    assert box_overflow(cam, points, narrow, 0.0) == pytest.approx(0.1 / 0.9, rel=1e-6)
+    assert box_overflow(cam, points, narrow, 0.2) == 0.0
+    # A larger box costs nothing: falling short of the box is not counted.
+    assert box_overflow(cam, points, (x0 - 50, y0 - 50, x1 + 50, y1 + 50), 0.0) == 0.0
+
+
+def test_box_overflow_leaves_sides_on_the_photo_border_free(sedan):
+    cam = border_crop_camera(sedan.mesh, view(sedan, 30.0, 12.0, width=640, height=480, focal=900.0), 0.3)
+    points = sedan.mesh.sample_points(600)
+    x0, y0, _, y1 = _projected_box(cam, points)
+    assert box_overflow(cam, points, (x0, y0, 639.0, y1), 0.0) == pytest.approx(0.0, abs=1e-9)
+    assert box_overflow(cam, points, (x0, y0, 600.0, y1), 0.0) > 0.1
+    behind = Camera(cam.K, cam.R, cam.t - np.array([0.0, 0.0, 100.0]), cam.width, cam.height)
+    assert box_overflow(behind, points, (x0, y0, 639.0, y1), 0.0) == 4.0
