@@ -213,10 +213,10 @@ class RegistrationOptions:
     grabcut: bool = True
     grabcut_margin: float = 0.12
     box_margin: float = 0.04
-    fit_start_to_box: bool = False
-    box_weight: float = 0.0
+    fit_start_to_box: bool = True
+    box_weight: float = 1.0
     box_tolerance: float = 0.05
-    edge_weight: float = 0.0
+    edge_weight: float = 0.5
     resegment: bool = True
     resegment_margin: float = 0.08
     resegment_iterations: int = 2
