@@ -14,6 +14,7 @@ from PIL import Image
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 from vehicle_pose.photo import decode_photo
+from vehicle_pose.pipeline import RegistrationOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -72,6 +73,20 @@ def test_cli_registers_the_shipped_sample(tmp_path):
     model = ModelLibrary().load("sedan")
     truth = Camera.load(ROOT / "examples" / "sedan_truth.json")
     assert projection_error(model, Camera.from_dict(result["camera"]), truth) < 2.0
+    assert result["options"]["edge_weight"] == RegistrationOptions.edge_weight
+
+
+@pytest.mark.slow
+def test_cli_options_reach_the_engine(tmp_path):
+    out = tmp_path / "result.json"
+    proc = _cli("register", "examples/sedan.jpg", "--model", "sedan", "--init-camera", "examples/sedan_init.json",
+                "--bbox", "100,150,700,450", "--edge-weight", "0", "--box-weight", "0.5", "--no-box-refit",
+                "--single-level", "--max-evaluations", "40", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    opts = result["options"]
+    assert (opts["edge_weight"], opts["box_weight"], opts["fit_start_to_box"]) == (0.0, 0.5, False)
+    assert len(result["levels"]) == 1 and result["levels"][0]["objective"] >= result["levels"][0]["loss"]
 
 
 @pytest.mark.parametrize(

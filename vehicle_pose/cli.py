@@ -60,6 +60,12 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--no-resegment", action="store_true", help="run GrabCut once, from the start pose only")
     r.add_argument("--no-focal-probes", action="store_true",
                    help="the second level searches from the first level's pose only, not also from its dolly zooms")
+    r.add_argument("--edge-weight", type=float, default=RegistrationOptions.edge_weight,
+                   help="weight of the edge alignment term (0: the loss alone)")
+    r.add_argument("--box-weight", type=float, default=RegistrationOptions.box_weight,
+                   help="with --init-camera and --bbox: weight of the cost of leaving the box (0: none)")
+    r.add_argument("--no-box-refit", action="store_true",
+                   help="with --init-camera and --bbox: keep the start camera's place and size instead of fitting them to the box")
     r.add_argument("--side", default="auto", choices=("auto", "left", "right"), help="visible side")
     r.add_argument("--color", action="store_true", help="score the three colour channels (n = 3)")
     r.add_argument("--no-grabcut", action="store_true", help="keep the photo's background")
@@ -102,6 +108,9 @@ def _register(args: argparse.Namespace) -> int:
         focal_starts=() if args.no_focal_probes else RegistrationOptions.focal_starts,
         starts=args.starts,
         refine=args.refine,
+        edge_weight=args.edge_weight,
+        box_weight=args.box_weight,
+        fit_start_to_box=not args.no_box_refit,
     )
     result, data = register_or_identify(photo, models, init_camera=init, bbox=args.bbox, options=options)
     model = result.model

@@ -1,0 +1,149 @@
+"""Real photos: is the objective's minimum wrong, or does the search not reach it?
+
+Usage: .venv/bin/python bench/real_diagnose.py [--shared ../shared/real] [--option KEY=VALUE ...]
+       [--cases N] [--tag TAG]
+
+For each case of ``../shared/real``: register from ``init.json`` (with its box), then score the
+objective the search minimises (the named loss plus ``edge_weight`` times the edge term) at
+
+- the found pose, with the found pose's own GrabCut mask;
+- the annotated rotation, its place, size and focal length refitted (300 simplex evaluations,
+  rotation fixed) on the same mask;
+- both again on a mask that GrabCut seeds with the annotated pose's silhouette.
+
+When the annotated rotation scores higher than the found pose on the same mask, the minimum
+is wrong (the search found a better pose by the objective's own measure); when it scores lower,
+the search did not reach it. Writes ``bench/results/real_diagnose[_TAG].json`` and, per case, a
+picture of the two poses over the two masks (``real_diagnose[_TAG]/<case>.png``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from accuracy import parse_options
+from common import RESULTS, table, write_report
+from real import load_models
+
+from vehicle_pose.camera import Camera
+from vehicle_pose.edges import EdgeLoss
+from vehicle_pose.errors import CameraError, PoseError
+from vehicle_pose.initialize import rotation_angle
+from vehicle_pose.loss import make_target
+from vehicle_pose.losses import make_loss
+from vehicle_pose.optimize import NelderMeadRestarts
+from vehicle_pose.overlay import draw_overlay, save_png
+from vehicle_pose.photo import load_photo
+from vehicle_pose.pipeline import RegistrationOptions, _resize, _resize_mask, _view_params, register
+from vehicle_pose.render import Renderer
+from vehicle_pose.segment import grabcut_foreground
+
+
+class Objective:
+    """The search's objective on one photo and mask (the box term left out: it is zero within
+    the box's tolerance, where both poses lie)."""
+
+    def __init__(self, work: np.ndarray, mask: np.ndarray, options: RegistrationOptions, renderer: Renderer, mesh) -> None:
+        self.loss = make_loss(options.loss, make_target(work, mask, color=options.color))
+        self.edges = EdgeLoss(work, foreground=mask) if options.edge_weight > 0 else None
+        self.weight, self.renderer, self.mesh = options.edge_weight, renderer, mesh
+
+    def __call__(self, camera: Camera) -> float:
+        frame = self.renderer.render(self.mesh, camera)
+        value = float(self.loss(frame))
+        return value + (self.weight * self.edges(frame) if self.edges is not None else 0.0)
+
+
+def refit_fixed_rotation(objective: Objective, model, camera: Camera, budget: int = 300) -> tuple[Camera, float]:
+    """The best place, size and focal length for ``camera``'s rotation (view coordinates 3-6)."""
+    params = _view_params(camera, model, RegistrationOptions.dolly_pivot)
+
+    def f(z: np.ndarray) -> float:
+        x = np.concatenate([np.zeros(3), z])
+        try:
+            return objective(params.camera(x))
+        except (PoseError, CameraError):
+            return 10.0
+
+    res = NelderMeadRestarts()(f, np.zeros(4), params.steps()[3:], max_evaluations=budget)
+    return params.camera(np.concatenate([np.zeros(3), res.x])), float(res.fun)
+
+
+def annotated(camera: Camera, R: np.ndarray, centre: np.ndarray) -> Camera:
+    """``camera`` turned to ``R`` about the model's centre."""
+    c = camera.to_camera(centre[None])[0]
+    return Camera(camera.K, R, c - R @ centre, camera.width, camera.height)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "real")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--cases", type=int, default=None)
+    ap.add_argument("--tag", default="")
+    args = ap.parse_args()
+    if not (args.shared / "cases").is_dir():
+        print(f"no real cases at {args.shared}; skipped")
+        return
+    options = parse_options(args.option)
+    name = "real_diagnose" + (f"_{args.tag}" if args.tag else "")
+    pictures = RESULTS / name
+    pictures.mkdir(parents=True, exist_ok=True)
+    models = load_models(args.shared)
+    renderer = Renderer()
+    rows = []
+    for case in sorted((args.shared / "cases").iterdir())[:args.cases]:
+        gt = json.loads((case / "gt.json").read_text())
+        model = models[gt["model"]]
+        R_gt = np.asarray(gt["R"], float)
+        hint = json.loads((case / "init.json").read_text())
+        photo = load_photo(case / "photo.jpg")
+        res = register(photo, model, init_camera=Camera.from_dict(hint), bbox=hint["bbox"], options=options,
+                       renderer=renderer)
+        H, W = photo.shape[:2]
+        s = min(1.0, options.max_size / max(W, H))
+        Wf, Hf = round(W * s), round(H * s)
+        work = _resize(photo, Wf, Hf)
+        mesh = renderer.exterior(model.lod(16384))
+        found = res.camera.scaled(Wf, Hf)
+        own = _resize_mask(res.foreground, Wf, Hf)
+        on_own = Objective(work, own, options, renderer, mesh)
+        truth, truth_own = refit_fixed_rotation(on_own, model, annotated(found, R_gt, model.mesh.sphere[0]))
+        seeded = grabcut_foreground(work, renderer.render(model.lod(16384), truth).coverage, margin=0.08,
+                                    sure_core=True, iterations=4, max_size=options.max_size)
+        on_seeded = Objective(work, seeded, options, renderer, mesh)
+        truth2, truth_seeded = refit_fixed_rotation(on_seeded, model, truth)
+        row = {
+            "case": case.name,
+            "found deg": rotation_angle(found.R, R_gt),
+            "found, own mask": on_own(found),
+            "annotated, own mask": truth_own,
+            "found, seeded mask": on_seeded(found),
+            "annotated, seeded mask": truth_seeded,
+            "mask iou": float((own & seeded).sum() / max((own | seeded).sum(), 1)),
+            "focal W found": found.focal / Wf,
+            "focal W annotated": truth.focal / Wf,
+        }
+        row["minimum wrong"] = row["annotated, own mask"] > row["found, own mask"]
+        rows.append(row)
+        print(" ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
+        over = np.concatenate([draw_overlay(work, model.lod(16384), found, renderer=renderer, shade=0.5),
+                               draw_overlay(work, model.lod(16384), truth2, renderer=renderer, shade=0.5)], 1)
+        masks = np.concatenate([own, seeded], 1)[..., None].repeat(3, 2).astype(np.uint8) * 255
+        save_png(pictures / f"{case.name}.png", np.concatenate([over, masks], 0))
+    summary = [{
+        "cases": len(rows),
+        "minimum wrong, own mask": sum(r["minimum wrong"] for r in rows),
+        "minimum wrong, seeded mask": sum(r["annotated, seeded mask"] > r["found, seeded mask"] for r in rows),
+        "median found deg": float(np.median([r["found deg"] for r in rows])),
+        "median mask iou": float(np.median([r["mask iou"] for r in rows])),
+    }]
+    print(table(summary, list(summary[0])))
+    print(write_report(name, {"rows": summary, "runs": rows, "options": vars(options)}))
+
+
+if __name__ == "__main__":
+    main()
