@@ -125,6 +125,8 @@ def parse_options(pairs: list[str]) -> RegistrationOptions:
             fields[key] = value.lower() in ("1", "true", "yes")
         elif kind is tuple:
             fields[key] = tuple(ast.literal_eval(value))
+        elif kind is type(None):
+            fields[key] = ast.literal_eval(value)
         else:
             fields[key] = kind(value)
     return dataclasses.replace(defaults, **fields)

@@ -93,3 +93,18 @@ def test_rendered_model_is_lowest_at_its_true_pose(sedan, renderer):
 def test_a_photo_that_is_not_rgb_bytes_is_refused(bad):
     with pytest.raises(ValueError, match="photo"):
         EdgeLoss(bad)
+
+
+def test_a_crease_is_an_edge_only_when_sharper_than_the_threshold():
+    # Two flat halves of one material meeting at a 60-degree crease down the middle, over a
+    # photo whose only edges are the outline: the crease costs where it counts as an edge.
+    attrs = np.zeros((60, 80, 4), np.float32)
+    attrs[..., 0] = 1.0
+    turn = np.radians(30.0)
+    attrs[:, :40, 1:] = (-np.sin(turn), 0.0, -np.cos(turn))
+    attrs[:, 40:, 1:] = (np.sin(turn), 0.0, -np.cos(turn))
+    frame = Frame(attrs, np.ones((60, 80), np.uint8), 40, 30, W, H)
+    photo = _square_photo(40, 30, 120, 90)
+    sharp, blunt = EdgeLoss(photo, crease=0.6)(frame), EdgeLoss(photo, crease=2.0)(frame)
+    assert blunt * EdgeLoss(photo).tau < 1.0
+    assert sharp > blunt + 0.05

@@ -168,6 +168,9 @@ def test_registers_without_any_hint(library, renderer, model_id, azimuth, elevat
     assert not result.failed and result.confidence is not None and result.confidence >= 0.5
     d = result.to_dict()
     assert d["failed"] is False and d["start"]["candidates"] and d["checks"]["region_iou"] > 0.9
+    # The edge term refines a given start only; the no-hint chain runs on the loss alone.
+    assert RegistrationOptions.edge_weight > 0 and d["options"]["edge_weight"] == 0.0
+    assert all(level["objective"] == level["loss"] for level in d["levels"])
 
 
 @pytest.mark.slow

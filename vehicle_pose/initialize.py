@@ -136,14 +136,15 @@ def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box,
     return Camera(K, R, depth * ray - R @ anchor, camera.width, camera.height)
 
 
-def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float) -> float:
+def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, shortfall: float | None = None) -> float:
     """How far ``points`` project beyond ``box`` grown by ``margin`` of its size on each side,
     summed over the four sides in units of the box's width or height (0 inside).
 
     A side of the box on the photo's border says nothing (the vehicle may go on beyond the
     frame) and is not checked; points behind the camera count as far out. Falling short of
-    the box is not counted: a box drawn by hand is often loose, and measured on the real and
-    photoreal cases a two-sided term cost accuracy on both (docs/engine.md).
+    the box counts only with ``shortfall``, beyond that fraction of its size: a box drawn by
+    hand is often loose, and measured on the real and photoreal cases a two-sided term with
+    the same tolerance cost accuracy on both (docs/engine.md).
     """
     uv = camera.project(points)
     if not np.all(np.isfinite(uv)):
@@ -159,6 +160,10 @@ def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float) ->
         out += max(0.0, box[1] - margin * bh - lo[1]) / bh
     if box[3] < camera.height - 2.0:
         out += max(0.0, hi[1] - box[3] - margin * bh) / bh
+    if shortfall is not None:
+        sx, sy = shortfall * bw, shortfall * bh
+        out += (max(0.0, lo[0] - box[0] - sx) + max(0.0, box[2] - sx - hi[0])) / bw
+        out += (max(0.0, lo[1] - box[1] - sy) + max(0.0, box[3] - sy - hi[1])) / bh
     return float(out)
 
 

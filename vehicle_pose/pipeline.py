@@ -110,6 +110,9 @@ class RegistrationOptions:
         edges against the photo's edges near the foreground (:class:`~vehicle_pose.edges.EdgeLoss`,
         in [0, 1]): outline, window frames and lights hold the model where reflections in the
         paint and glass leave the invariant loss blind. 0 leaves the loss alone.
+    edge_crease : float
+        Change of a camera-space normal component between neighbouring pixels that makes a
+        model edge of the edge term (0.6: a crease of about 35 degrees).
     resegment : bool
         Run GrabCut again after each coarse level, seeded by that level's pose with
         ``resegment_margin`` and its shrunk silhouette as certain foreground: a better pose
@@ -216,7 +219,9 @@ class RegistrationOptions:
     fit_start_to_box: bool = True
     box_weight: float = 1.0
     box_tolerance: float = 0.05
+    box_shortfall: float | None = None
     edge_weight: float = 0.5
+    edge_crease: float = 0.6
     resegment: bool = True
     resegment_margin: float = 0.08
     resegment_iterations: int = 2
@@ -438,7 +443,7 @@ def _fit(
         loss_fn = make_loss(options.loss, target)
         edge_fn = None
         if options.edge_weight > 0:
-            edge_fn = EdgeLoss(_resize(work, w, h), foreground=target.foreground)
+            edge_fn = EdgeLoss(_resize(work, w, h), foreground=target.foreground, crease=options.edge_crease)
         stage = f"{stage_prefix}level {li + 1}/{len(sizes)} ({w}x{h})"
         level_box = None
         if box is not None and options.box_weight > 0:
@@ -466,7 +471,8 @@ def _fit(
                 if edge_fn is not None:
                     value += options.edge_weight * edge_fn(frame)
                 if level_box is not None:
-                    value += options.box_weight * box_overflow(cam, box_points, level_box, options.box_tolerance)
+                    value += options.box_weight * box_overflow(cam, box_points, level_box, options.box_tolerance,
+                                                                options.box_shortfall)
                 counter[0] += 1
                 if progress is not None and counter[0] % 20 == 0:
                     progress(stage, counter[0], value)
