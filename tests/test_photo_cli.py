@@ -118,6 +118,26 @@ def test_cli_empty_mesh_and_bad_camera_json(tmp_path):
     assert proc.returncode == 2 and "rotation" in proc.stderr
 
 
+@pytest.mark.parametrize("up,forward", [("+z", "-y"), ("-y", "+x"), ("-Z", "-X")])
+def test_cli_takes_signed_axes_as_documented(up, forward):
+    from vehicle_pose.cli import _join_signed_axes, _parser
+
+    argv = ["register", "p.jpg", "--model", "m.obj", "--out", "r.json", "--up", up, "--forward", forward]
+    args = _parser().parse_args(_join_signed_axes(argv))
+    assert (args.up, args.forward) == (up, forward)
+
+
+def test_cli_documented_axis_form_reaches_the_mesh_loader(tmp_path):
+    # The README's form, negative axes and all; up and forward along one line are refused
+    # by the loader, not by the argument parser.
+    mesh = tmp_path / "tri.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    proc = _cli("register", "examples/sedan.jpg", "--model", str(mesh), "--out", str(tmp_path / "r.json"),
+                "--up", "-y", "--forward", "-y")
+    assert proc.returncode == 2 and "expected one argument" not in proc.stderr
+    assert "axis" in proc.stderr or "axes" in proc.stderr
+
+
 def test_cli_lists_models():
     proc = _cli("models")
     assert proc.returncode == 0 and "sedan" in proc.stdout

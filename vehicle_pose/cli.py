@@ -140,8 +140,27 @@ def _models(args: argparse.Namespace) -> int:
     return 0
 
 
+_AXIS_OPTIONS = ("--up", "--forward")
+
+
+def _join_signed_axes(argv: list[str]) -> list[str]:
+    """``--forward -y`` as ``--forward=-y``: argparse takes a value that starts with a dash
+    for an option of its own, and a mesh's axes are often negative."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] in _AXIS_OPTIONS and i + 1 < len(argv) and argv[i + 1][:1] == "-" \
+                and argv[i + 1][1:].lower() in ("x", "y", "z"):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args = _parser().parse_args(_join_signed_axes(list(sys.argv[1:] if argv is None else argv)))
     try:
         if args.command == "register":
             return _register(args)
