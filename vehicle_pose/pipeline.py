@@ -105,6 +105,11 @@ class RegistrationOptions:
     box_tolerance : float
         How far, as a fraction of the box's size, the projection may pass the box free of cost
         (an annotated box is loose by a few pixels, a CAD model not exactly the car).
+    box_shortfall : float or None
+        The box term also counts how far a side of the projection falls short of the box's by
+        more than this fraction of its size (None: not at all): a model that fills less of the
+        box than that has shrunk inside the vehicle, onto a panel or the beltline. Loose boxes
+        stay free: the tolerance is three times ``box_tolerance``.
     edge_weight : float
         With a start camera, the loss is raised by this times the directional chamfer cost of the rendered model's
         edges against the photo's edges near the foreground (:class:`~vehicle_pose.edges.EdgeLoss`,
@@ -219,7 +224,7 @@ class RegistrationOptions:
     fit_start_to_box: bool = True
     box_weight: float = 1.0
     box_tolerance: float = 0.05
-    box_shortfall: float | None = None
+    box_shortfall: float | None = 0.15
     edge_weight: float = 0.5
     edge_crease: float = 0.6
     resegment: bool = True
