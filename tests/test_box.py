@@ -72,3 +72,17 @@ def test_box_overflow_leaves_sides_on_the_photo_border_free(sedan):
     assert box_overflow(cam, points, (x0, y0, 600.0, y1), 0.0) > 0.1
     behind = Camera(cam.K, cam.R, cam.t - np.array([0.0, 0.0, 100.0]), cam.width, cam.height)
     assert box_overflow(behind, points, (x0, y0, 639.0, y1), 0.0) == 4.0
+
+
+def test_box_shortfall_counts_a_projection_shrunk_inside_the_box(sedan):
+    cam = view(sedan, 30.0, 12.0, width=640, height=480, focal=900.0)
+    points = sedan.mesh.sample_points(600)
+    x0, y0, x1, y1 = _projected_box(cam, points)
+    w, h = x1 - x0, y1 - y0
+    loose = (x0 - 0.1 * w, y0, x1, y1)  # 10 % loose on the left: within a 15 % shortfall
+    assert box_overflow(cam, points, loose, 0.0, 0.15) == pytest.approx(0.0, abs=1e-9)
+    # A box twice as tall (the model covers only its upper half): the bottom falls short by
+    # half the box's height less the tolerance.
+    tall = (x0, y0, x1, y1 + h)
+    assert box_overflow(cam, points, tall, 0.0, 0.15) == pytest.approx(0.5 - 0.15, rel=1e-6)
+    assert box_overflow(cam, points, tall, 0.0) == pytest.approx(0.0, abs=1e-9)
