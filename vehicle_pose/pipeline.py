@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .camera import Camera
+from .edges import EdgeLoss
 from .errors import CameraError, PoseError
 from .initialize import (
     WINDOW_MARGIN,
@@ -33,7 +34,6 @@ from .initialize import (
 )
 from .library import VehicleModel
 from .loss import make_target
-from .edges import EdgeLoss
 from .losses import LOSSES, make_loss
 from .optimize import OPTIMIZERS, Optimizer, OptimizeResult
 from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
@@ -100,8 +100,9 @@ class RegistrationOptions:
         length kept) so that the model's projection, cut to the photo, fills the box.
     box_weight : float
         With a start camera and a box, the loss is raised by this times how far the model's
-        projection goes beyond the box grown by ``box_tolerance`` of its size
-        (:func:`~vehicle_pose.initialize.box_overflow`; sides on the photo's border are free).
+        projection goes beyond the box grown by ``box_tolerance`` of its size, or falls short
+        of it by more than ``box_shortfall`` (:func:`~vehicle_pose.initialize.box_overflow`;
+        going beyond a side on the photo's border is free).
     box_tolerance : float
         How far, as a fraction of the box's size, the projection may pass the box free of cost
         (an annotated box is loose by a few pixels, a CAD model not exactly the car).
@@ -111,10 +112,11 @@ class RegistrationOptions:
         box than that has shrunk inside the vehicle, onto a panel or the beltline. Loose boxes
         stay free: the tolerance is three times ``box_tolerance``.
     edge_weight : float
-        With a start camera, the loss is raised by this times the directional chamfer cost of the rendered model's
-        edges against the photo's edges near the foreground (:class:`~vehicle_pose.edges.EdgeLoss`,
-        in [0, 1]): outline, window frames and lights hold the model where reflections in the
-        paint and glass leave the invariant loss blind. 0 leaves the loss alone.
+        With a start camera, the loss is raised by this times the directional chamfer cost of
+        the rendered model's edges against the photo's edges near the foreground
+        (:class:`~vehicle_pose.edges.EdgeLoss`, in [0, 1]): outline, window frames and lights
+        hold the model where reflections in the paint and glass leave the invariant loss
+        blind. 0 leaves the loss alone.
     edge_crease : float
         Change of a camera-space normal component between neighbouring pixels that makes a
         model edge of the edge term (0.6: a crease of about 35 degrees).
