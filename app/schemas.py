@@ -30,6 +30,12 @@ class RegistrationOptionsIn(BaseModel):
     max_evaluations: int | None = Field(default=None, ge=20, le=5000)
     starts: int | None = Field(default=None, ge=1, le=12, description="without init_camera: start poses screened")
     refine: int | None = Field(default=None, ge=1, le=4, description="without init_camera: poses refined at full size")
+    edge_weight: float | None = Field(default=None, ge=0.0, le=10.0,
+                                      description="with init_camera: weight of the edge alignment term (0: none)")
+    box_weight: float | None = Field(default=None, ge=0.0, le=100.0,
+                                     description="with init_camera and bbox: weight of the cost of leaving the box")
+    fit_start_to_box: bool | None = Field(default=None,
+                                          description="with init_camera and bbox: fit the start's place and size to the box")
 
     def engine_kwargs(self) -> dict[str, Any]:
         """The options that were set, checked against the engine's names."""

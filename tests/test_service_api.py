@@ -212,6 +212,7 @@ def test_bad_hints_and_unknown_model_are_refused_before_queueing(service, scene)
         assert_problem(submit(c, png, options='{"loss": "nope"}'), 422, "invalid-options")
         assert_problem(submit(c, png, options='{"max_evaluations": 1}'), 422, "invalid-options")
         assert_problem(submit(c, png, options='{"starts": 0}'), 422, "invalid-options")
+        assert_problem(submit(c, png, options='{"edge_weight": -1}'), 422, "invalid-options")
         body = assert_problem(submit(c, png, model_id="sedan,no-such-car"), 422, "unknown-model")
         assert "no-such-car" in body["detail"]
         assert_problem(submit(c, png, model_id="x" * 65), 422, "unknown-model")
