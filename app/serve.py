@@ -162,11 +162,25 @@ def run(args: argparse.Namespace) -> int:
         _terminate(procs)
 
 
+def _use_data_dir(args: argparse.Namespace) -> None:
+    """Point the settings at ``--data-dir`` (read before any setting is)."""
+    os.environ["VP_DATA_DIR"] = str(Path(args.data_dir).resolve())
+
+
 def create_key(args: argparse.Namespace) -> int:
+    _use_data_dir(args)
+    from .core.config import get_settings
     from .core.db import session_scope
     from .core.migrate import upgrade
     from .core.security import create_client
 
+    settings = get_settings()
+    db_file = settings.data_dir / "vehicle_pose.db"
+    if settings.database_url.startswith("sqlite") and not db_file.is_file():
+        # A key in a database no service uses works nowhere: say so instead of making one.
+        print(f"vehicle-pose-service: error: no service database at {db_file}; give the service's "
+              f"--data-dir (or VP_DATA_DIR), or run the service there once", file=sys.stderr)
+        return 2
     upgrade()
     with session_scope() as s:
         key = create_client(s, args.name, admin=args.admin)
@@ -174,8 +188,9 @@ def create_key(args: argparse.Namespace) -> int:
     return 0
 
 
-def migrate(_: argparse.Namespace) -> int:
+def migrate(args: argparse.Namespace) -> int:
     """Apply migrations; on a database with no client yet, create the bootstrap admin and client."""
+    _use_data_dir(args)
     from .core.config import get_settings
     from .core.migrate import upgrade
 
@@ -200,7 +215,9 @@ def main(argv: list[str] | None = None) -> int:
     k = sub.add_parser("create-key", help="add an API client and print its key")
     k.add_argument("name")
     k.add_argument("--admin", action="store_true")
-    sub.add_parser("migrate", help="apply database migrations")
+    k.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"), help="the service's data folder")
+    m = sub.add_parser("migrate", help="apply database migrations")
+    m.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"), help="the service's data folder")
     args = p.parse_args(argv if argv is not None else (sys.argv[1:] or ["run"]))
     return {"run": run, "create-key": create_key, "migrate": migrate}[args.command or "run"](args)
 

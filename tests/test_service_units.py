@@ -300,3 +300,18 @@ def test_real_photo_options_reach_the_engine_and_are_bounded():
     for bad in ('{"edge_weight": -1}', '{"box_weight": 1e9}', '{"fit_start_to_box": "maybe"}'):
         with pytest.raises(ValueError):
             RegistrationOptionsIn.model_validate_json(bad)
+
+
+def test_create_key_needs_the_service_database(tmp_path):
+    service = Path(__file__).resolve().parents[1] / ".venv" / "bin" / "vehicle-pose-service"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("VP_")}
+    empty = tmp_path / "empty"
+    refused = subprocess.run([str(service), "create-key", "someone", "--data-dir", str(empty)], env=env,
+                             capture_output=True, text=True, cwd=tmp_path)
+    assert refused.returncode == 2 and "no service database" in refused.stderr and not refused.stdout
+    assert not (tmp_path / "data").exists() and not (empty / "vehicle_pose.db").exists()
+    data = tmp_path / "svc"
+    subprocess.run([str(service), "migrate", "--data-dir", str(data)], env=env, check=True, capture_output=True)
+    made = subprocess.run([str(service), "create-key", "someone", "--data-dir", str(data)], env=env,
+                          capture_output=True, text=True, check=True)
+    assert made.stdout.strip().startswith("vp_")
