@@ -64,6 +64,8 @@ def parse_hints(
             camera = Camera.from_dict(json.loads(init_camera)).to_dict()
         except json.JSONDecodeError as exc:
             raise Problem(422, "invalid-camera", f"init_camera is not valid JSON: {exc.msg}") from None
+        except (ValueError, RecursionError) as exc:  # a 5000-digit integer, 100 000 nested brackets
+            raise Problem(422, "invalid-camera", f"init_camera cannot be read: {type(exc).__name__}") from None
         except CameraError as exc:
             raise Problem(422, "invalid-camera", str(exc)) from None
     box = None

@@ -208,6 +208,13 @@ def test_bad_hints_and_unknown_model_are_refused_before_queueing(service, scene)
         assert "sedan" in body["detail"]
         assert_problem(submit(c, png, init_camera="{not json"), 422, "invalid-camera")
         assert_problem(submit(c, png, init_camera='{"K": [[1]]}'), 422, "invalid-camera")
+        camera = scene[2].to_dict()
+        for hostile in (json.dumps(camera).replace(f'"width": {camera["width"]}', '"width": Infinity'),
+                        json.dumps(camera).replace(f'"width": {camera["width"]}', '"width": 1e999'),
+                        json.dumps({**camera, "width": "9" * 5000}).replace('"' + "9" * 5000 + '"', "9" * 5000),
+                        "[" * 100_000 + "]" * 100_000,
+                        json.dumps({**camera, "t": [0, 0, 1e300]})):
+            assert_problem(submit(c, png, init_camera=hostile), 422, "invalid-camera")
         assert_problem(submit(c, png, bbox="1,2,3"), 422, "invalid-bbox")
         assert_problem(submit(c, png, options='{"loss": "nope"}'), 422, "invalid-options")
         assert_problem(submit(c, png, options='{"max_evaluations": 1}'), 422, "invalid-options")
@@ -218,6 +225,8 @@ def test_bad_hints_and_unknown_model_are_refused_before_queueing(service, scene)
         assert_problem(submit(c, png, model_id="x" * 65), 422, "unknown-model")
         assert_problem(c.post("/v1/registrations", data={"model_id": "sedan"}), 422, "validation-error")
         assert _queued_total(c.get("/metrics").text) == _queued_total(before)
+    with service.client("admin") as admin:
+        assert_problem(admin.get("/admin", params={"page": "9" * 20}), 422, "validation-error")
 
 
 def test_no_hint_identification(service, renderer):

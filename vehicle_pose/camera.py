@@ -17,9 +17,14 @@ import numpy.typing as npt
 
 from .errors import CameraError
 
-__all__ = ["Camera", "look_at_camera"]
+__all__ = ["Camera", "MAX_IMAGE_SIDE", "MAX_MAGNITUDE", "look_at_camera"]
 
 FloatArray = npt.NDArray[np.float64]
+
+MAX_IMAGE_SIDE = 100_000
+"""The largest image side a camera read from JSON may have (pixels)."""
+MAX_MAGNITUDE = 1e9
+"""The largest absolute entry of K (pixels) or t (mesh units) a camera read from JSON may have."""
 
 
 @dataclass(frozen=True)
@@ -118,7 +123,9 @@ class Camera:
 
     @classmethod
     def from_dict(cls, data: Any) -> Camera:
-        """Build a camera from ``{"K", "R", "t", "width", "height"}``; CameraError if malformed."""
+        """Build a camera from ``{"K", "R", "t", "width", "height"}``; CameraError if malformed,
+        if the image is larger than :data:`MAX_IMAGE_SIDE` or a number of K or t beyond
+        :data:`MAX_MAGNITUDE`."""
         if not isinstance(data, dict):
             raise CameraError("camera JSON must be an object with K, R, t, width, height")
         missing = [k for k in ("K", "R", "t", "width", "height") if k not in data]
@@ -129,8 +136,13 @@ class Camera:
             R = np.array(data["R"], dtype=np.float64)
             t = np.array(data["t"], dtype=np.float64).reshape(-1)
             width, height = int(data["width"]), int(data["height"])
-        except (TypeError, ValueError) as exc:
-            raise CameraError(f"camera JSON has a non-numeric entry: {exc}") from None
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise CameraError(f"camera JSON has a non-numeric or out-of-range entry: {exc}") from None
+        if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
+            raise CameraError(f"image size {width}x{height} is outside 1-{MAX_IMAGE_SIDE} pixels")
+        if K.size and t.size and max(float(np.abs(K).max()), float(np.abs(t).max())) > MAX_MAGNITUDE:
+            # Finite but beyond what a projection can use (the renderer divides by these).
+            raise CameraError(f"camera K or t holds a number beyond {MAX_MAGNITUDE:g}")
         return cls(K, R, t, width, height)
 
     @classmethod
@@ -142,6 +154,8 @@ class Camera:
             raise CameraError(f"cannot read camera file {path}: {exc.strerror}") from None
         except json.JSONDecodeError as exc:
             raise CameraError(f"camera file {path} is not valid JSON: {exc.msg} at line {exc.lineno}") from None
+        except (ValueError, RecursionError) as exc:  # a 5000-digit integer, 100 000 nested brackets
+            raise CameraError(f"camera file {path} cannot be read as a camera: {type(exc).__name__}") from None
         return cls.from_dict(data)
 
 

@@ -30,7 +30,7 @@ def recent(
     session: SessionDep,
     status: Annotated[str | None, Query()] = None,
     model: Annotated[str | None, Query()] = None,
-    page: Annotated[int, Query(ge=1)] = 1,
+    page: Annotated[int, Query(ge=1, le=1_000_000)] = 1,
 ) -> HTMLResponse:
     """Recent registrations, newest first."""
     status = status or None
