@@ -437,7 +437,9 @@ def _fit(
 
     camera = start
     levels: list[LevelReport] = []
-    box_points = model.mesh.sample_points(600)
+    # The box term's points, sampled once per fit and only when the term is on (the no-hint
+    # chain runs a fit per screened start, without a box).
+    box_points = model.mesh.sample_points(600) if box is not None and options.box_weight > 0 else None
     area = max(float(silhouette.sum()), 1.0)
     fine = min(1.0, float(np.sqrt(options.max_pixels / area))) if options.max_pixels > 0 else 1.0
     sizes = _level_sizes(max(8, round(Wf * fine)), max(8, round(Hf * fine)), options)
@@ -453,7 +455,7 @@ def _fit(
             edge_fn = EdgeLoss(_resize(work, w, h), foreground=target.foreground, crease=options.edge_crease)
         stage = f"{stage_prefix}level {li + 1}/{len(sizes)} ({w}x{h})"
         level_box = None
-        if box is not None and options.box_weight > 0:
+        if box is not None and box_points is not None:
             level_box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
         counter = [0]
 
@@ -477,7 +479,7 @@ def _fit(
                 value = float(loss_fn(frame))
                 if edge_fn is not None:
                     value += options.edge_weight * edge_fn(frame)
-                if level_box is not None:
+                if level_box is not None and box_points is not None:
                     value += options.box_weight * box_overflow(cam, box_points, level_box, options.box_tolerance,
                                                                 options.box_shortfall)
                 counter[0] += 1
