@@ -42,11 +42,17 @@ LIGHTINGS: dict[str, Lighting] = {
 }
 
 
+def _smooth_texture(height: int, width: int, rng: np.random.Generator, cells: int,
+                    channels: int = 1) -> npt.NDArray[np.float64]:
+    """Random values on a grid ``cells`` wide, cubically interpolated to (height, width[, channels])."""
+    shape = (cells * height // width + 1, cells) + ((channels,) if channels > 1 else ())
+    return cv2.resize(rng.random(shape), (width, height), interpolation=cv2.INTER_CUBIC)
+
+
 def _background(height: int, width: int, rng: np.random.Generator) -> npt.NDArray[np.float64]:
     layers = np.zeros((height, width, 3))
     for cells, amp in ((4, 0.35), (16, 0.2), (64, 0.1)):
-        small = rng.random((cells * height // width + 1, cells, 3))
-        layers += amp * cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC)
+        layers += amp * _smooth_texture(height, width, rng, cells, 3)
     return np.clip(layers / 0.65, 0.0, 1.0)
 
 
@@ -86,11 +92,6 @@ HAZARDS: tuple[str, ...] = ("mirror-floor", "sky-on-glass", "second-car", "borde
 """What real photos have and :func:`synthesize` lacks, one at a time (:func:`synthesize_hazard`)."""
 
 
-def _smooth_texture(height: int, width: int, rng: np.random.Generator, cells: int) -> npt.NDArray[np.float64]:
-    small = rng.random((max(2, cells * height // max(width, 1)), cells))
-    return cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC)
-
-
 def synthesize_hazard(
     mesh: Mesh,
     camera: Camera,
@@ -123,18 +124,15 @@ def synthesize_hazard(
     photo, mask = synthesize(mesh, camera, lighting=lighting, renderer=r, seed=seed)
     img = photo.astype(np.float64) / 255.0
     if hazard == "mirror-floor":
-        rows = np.flatnonzero(mask.any(axis=1))
-        bottom = int(rows.max())
-        flipped_img, flipped_mask = img[::-1], mask[::-1]
+        bottom = int(np.flatnonzero(mask.any(axis=1)).max())
         # Row y below the bottom row shows row 2 * bottom - y of the vehicle.
-        shift = camera.height - 1 - 2 * bottom
-        src = np.arange(camera.height) - shift
-        ok = (src >= 0) & (src < camera.height) & (np.arange(camera.height) > bottom)
+        rows = np.arange(camera.height)
+        src = 2 * bottom - rows
+        ok = (rows > bottom) & (src >= 0)
         mirror_img = np.zeros_like(img)
         mirror_mask = np.zeros_like(mask)
-        mirror_img[ok] = flipped_img[src[ok]]
-        mirror_mask[ok] = flipped_mask[src[ok]]
-        mirror_mask &= ~mask
+        mirror_img[ok] = img[src[ok]]
+        mirror_mask[ok] = mask[src[ok]]
         img[mirror_mask] = 0.55 * mirror_img[mirror_mask] + 0.45 * img[mirror_mask]
     elif hazard == "sky-on-glass":
         frame = r.render(mesh, camera)
