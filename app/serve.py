@@ -210,14 +210,13 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--host", default="127.0.0.1")
     r.add_argument("--port", type=int, default=8000)
     r.add_argument("--workers", type=int, default=2, help="worker processes, each with one EGL context")
-    r.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"))
     r.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     k = sub.add_parser("create-key", help="add an API client and print its key")
     k.add_argument("name")
     k.add_argument("--admin", action="store_true")
-    k.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"), help="the service's data folder")
     m = sub.add_parser("migrate", help="apply database migrations")
-    m.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"), help="the service's data folder")
+    for command in (r, k, m):
+        command.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"), help="the service's data folder")
     args = p.parse_args(argv if argv is not None else (sys.argv[1:] or ["run"]))
     return {"run": run, "create-key": create_key, "migrate": migrate}[args.command or "run"](args)
 
