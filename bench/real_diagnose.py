@@ -107,7 +107,7 @@ def main() -> None:
         s = min(1.0, options.max_size / max(W, H))
         Wf, Hf = round(W * s), round(H * s)
         work = _resize(photo, Wf, Hf)
-        mesh = renderer.exterior(model.lod(16384))
+        mesh = model.exterior(16384, renderer)
         found = res.camera.scaled(Wf, Hf)
         own = _resize_mask(res.foreground, Wf, Hf)
         on_own = Objective(work, own, options, renderer, mesh)

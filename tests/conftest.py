@@ -14,6 +14,16 @@ from vehicle_pose.metadata import parse_axis
 from vehicle_pose.render import Renderer
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _model_cache(tmp_path_factory):
+    """Prepared models of this session (the CLI's and the service's, in subprocesses too) go
+    to a temporary folder, never to the user's cache."""
+    import os
+
+    os.environ["VEHICLE_POSE_CACHE_DIR"] = str(tmp_path_factory.mktemp("model-cache"))
+    yield
+
+
 @pytest.fixture(scope="session")
 def ctx():
     return get_context()

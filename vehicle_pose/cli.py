@@ -13,18 +13,19 @@ import json
 import sys
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from . import __version__
-from .camera import Camera
 from .errors import RenderError, VehiclePoseError
-from .identify import register_or_identify
-from .library import ModelLibrary, VehicleModel, model_from_mesh
-from .losses import LOSSES
 from .metadata import UNITS
-from .optimize import OPTIMIZERS
-from .overlay import draw_overlay, save_png
-from .parametrize import PARAMETRIZATIONS
-from .photo import load_photo
-from .pipeline import RegistrationOptions
+from .options import LOSS_NAMES, OPTIMIZER_NAMES, PARAMETRIZATION_NAMES, RegistrationOptions
+
+if TYPE_CHECKING:
+    from .library import VehicleModel
+    from .store import ModelStore
+
+# The renderer, the optimisers and trimesh are imported by the commands that use them:
+# ``--help`` and ``models`` answer without them.
 
 __all__ = ["main"]
 
@@ -53,9 +54,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--forward", default="+x", help="mesh forward axis, for a mesh path (default +x)")
     r.add_argument("--units", default="m", choices=sorted(UNITS), help="mesh units, for a mesh path")
     r.add_argument("--models-dir", help="model library folder (default: this checkout's vehicle_models/)")
-    r.add_argument("--loss", default=RegistrationOptions.loss, choices=sorted(LOSSES))
-    r.add_argument("--optimizer", default="nelder-mead", choices=sorted(OPTIMIZERS))
-    r.add_argument("--parametrization", default="view", choices=PARAMETRIZATIONS,
+    r.add_argument("--loss", default=RegistrationOptions.loss, choices=sorted(LOSS_NAMES))
+    r.add_argument("--optimizer", default=RegistrationOptions.optimizer, choices=sorted(OPTIMIZER_NAMES))
+    r.add_argument("--parametrization", default="view", choices=PARAMETRIZATION_NAMES,
                    help="search coordinates: a view perturbation (default) or the paper's theta")
     r.add_argument("--no-resegment", action="store_true", help="run GrabCut once, from the start pose only")
     r.add_argument("--no-focal-probes", action="store_true",
@@ -79,21 +80,88 @@ def _parser() -> argparse.ArgumentParser:
 
     m = sub.add_parser("models", help="list the model library")
     m.add_argument("--models-dir", help="model library folder")
+
+    q = sub.add_parser("prepare", help="prepare models for the cache now (registration does it on first use)")
+    q.add_argument("model", nargs="*",
+                   help="model ids or mesh file paths (default: every model of the library)")
+    q.add_argument("--up", default="+z", help="mesh up axis, for mesh paths (default +z)")
+    q.add_argument("--forward", default="+x", help="mesh forward axis, for mesh paths (default +x)")
+    q.add_argument("--units", default="m", choices=sorted(UNITS), help="mesh units, for mesh paths")
+    q.add_argument("--models-dir", help="model library folder")
+    for a in (r, q):
+        a.add_argument("--cache-dir", help="where prepared models are kept "
+                       "(default $VEHICLE_POSE_CACHE_DIR, else $XDG_CACHE_HOME/vehicle-pose, else ~/.cache/vehicle-pose)")
+    r.add_argument("--no-cache", action="store_true", help="prepare the model in memory only, reading and writing no cache")
     return p
 
 
-def _load_models(args: argparse.Namespace) -> list[VehicleModel]:
-    path = Path(args.model)
-    if path.suffix and (path.is_file() or "/" in args.model or "\\" in args.model):
-        return [model_from_mesh(path, up=args.up, forward=args.forward, units=args.units,
-                                meters_per_unit=UNITS[args.units])]
-    lib = ModelLibrary(args.models_dir)
-    return [lib.load(model_id) for model_id in lib.resolve(args.model)]
+def _store(args: argparse.Namespace) -> ModelStore | None:
+    from .store import ModelStore
+
+    if getattr(args, "no_cache", False):
+        return None
+    return ModelStore(Path(args.cache_dir) / "prepared" if args.cache_dir else None)
+
+
+def _is_path(spec: str) -> bool:
+    return bool(Path(spec).suffix) and (Path(spec).is_file() or "/" in spec or "\\" in spec)
+
+
+def _load_models(args: argparse.Namespace, specs: list[str]) -> list[VehicleModel]:
+    """Models named by mesh paths or library specs, each prepared completely on its first
+    use (levels of detail and exterior passes, with a progress line) when a store is on."""
+    from .library import ModelLibrary, model_from_mesh
+    from .render import Renderer
+    from .store import default_budgets
+
+    store = _store(args)
+    lib = ModelLibrary(args.models_dir, store=store)
+    models = []
+    for spec in specs:
+        if _is_path(spec):
+            models.append(model_from_mesh(spec, up=args.up, forward=args.forward, units=args.units,
+                                          meters_per_unit=UNITS[args.units], store=store))
+        else:
+            models += [lib.load(model_id) for model_id in lib.resolve(spec)]
+    if store is not None:
+        renderer = Renderer()
+        for model in models:
+            assert model.levels is not None
+            missing = model.levels.missing(default_budgets(model.mesh.n_faces), renderer)
+            if missing:
+                _prepare(model, missing, renderer)
+    return models
+
+
+def _prepare(model: VehicleModel, budgets: list[int], renderer: object) -> None:
+    import time
+
+    t = time.perf_counter()
+    print(f"vehicle-pose: preparing {model.info.id} ({model.mesh.n_faces} faces) for the cache, once",
+          file=sys.stderr, flush=True)
+    model.prepare(renderer, budgets, progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))  # type: ignore[arg-type]
+    where = model.levels.entry.folder if model.levels is not None and model.levels.entry is not None else "memory"
+    print(f"vehicle-pose: prepared {model.info.id} in {time.perf_counter() - t:.1f} s -> {where}",
+          file=sys.stderr, flush=True)
+
+
+def _prepare_command(args: argparse.Namespace) -> int:
+    from .library import ModelLibrary
+
+    specs = args.model or ModelLibrary(args.models_dir).ids()
+    for model in _load_models(args, specs):
+        print(f"{model.info.id}\tprepared")
+    return 0
 
 
 def _register(args: argparse.Namespace) -> int:
+    from .camera import Camera
+    from .identify import register_or_identify
+    from .overlay import draw_overlay, save_png
+    from .photo import load_photo
+
     photo = load_photo(args.photo)
-    models = _load_models(args)
+    models = _load_models(args, [args.model])
     init = Camera.load(args.init_camera) if args.init_camera else None
     options = RegistrationOptions(
         loss=args.loss,
@@ -133,6 +201,8 @@ def _register(args: argparse.Namespace) -> int:
 
 
 def _models(args: argparse.Namespace) -> int:
+    from .library import ModelLibrary
+
     lib = ModelLibrary(args.models_dir)
     for model_id in lib.ids():
         info = lib.info(model_id)
@@ -164,6 +234,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "register":
             return _register(args)
+        if args.command == "prepare":
+            return _prepare_command(args)
         return _models(args)
     except RenderError as exc:
         print(f"vehicle-pose: error: {exc}", file=sys.stderr)

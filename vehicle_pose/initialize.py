@@ -17,6 +17,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from .camera import Camera, look_at_camera
+from .options import WINDOW_MARGIN
 from .errors import CameraError
 from .library import VehicleModel
 from .loss import InvariantLoss, make_target
@@ -43,8 +44,6 @@ __all__ = [
 ]
 
 Box = tuple[float, float, float, float]
-# The start-pose searches look at the vehicle's box grown by this fraction of its longer side.
-WINDOW_MARGIN = 0.3
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -207,7 +206,7 @@ class _Scorer:
         target = make_target(self.window.image(rgb), self.window.mask(region.mask), color=False)
         self.loss = InvariantLoss(target)
         self.miss = SilhouetteIoULoss(target)
-        self.mesh = renderer.exterior(model.lod(max_faces))
+        self.mesh = model.exterior(max_faces, renderer)
         self.renderer = renderer
 
     def __call__(self, camera: Camera) -> tuple[float, float, float]:

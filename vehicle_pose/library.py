@@ -1,7 +1,9 @@
 """The model library: one folder per model holding ``model.json`` and its mesh.
 
 Models are loaded once per process and kept (with their coarser levels of detail) in a small
-cache, so a worker that registers many photos of the same model loads its mesh once.
+cache, so a worker that registers many photos of the same model loads its mesh once; with a
+:class:`~vehicle_pose.store.ModelStore`, what was prepared once is read back from disk by every
+later process.
 """
 
 from __future__ import annotations
@@ -11,13 +13,18 @@ import re
 import shutil
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import ModelError, UnknownModelError
-from .mesh import Mesh, load_mesh
 from .metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
+
+if TYPE_CHECKING:
+    from .mesh import Mesh
+    from .render import Renderer
+    from .store import Levels, ModelStore
 
 __all__ = ["AUTO", "VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
 
@@ -33,11 +40,17 @@ def default_library_root() -> Path:
 
 @dataclass(eq=False)
 class VehicleModel:
-    """A loaded model: metadata with complete wheel geometry, and its mesh."""
+    """A loaded model: metadata with complete wheel geometry, its mesh and its levels of detail."""
 
     info: ModelInfo
     mesh: Mesh
-    _lods: dict[int, Mesh] = field(default_factory=dict, repr=False)
+    levels: Levels | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.levels is None:
+            from .store import Levels
+
+            self.levels = Levels(self.mesh)
 
     @property
     def wheels(self) -> WheelGeometry:
@@ -50,24 +63,58 @@ class VehicleModel:
         The mesh is decimated to ``max_faces``; when the decimation's outline differs from the
         full mesh's (IoU below :data:`LOD_AGREEMENT` along any of 14 directions, e.g. a CAD
         soup of thin shells that the simplifier tears), the budget is doubled until it holds,
-        up to the full mesh. Levels are computed once per model.
+        up to the full mesh. Levels are computed once per model (and kept in the model's store
+        entry when it has one).
         """
-        if self.mesh.n_faces <= max_faces:
-            return self.mesh
-        if max_faces not in self._lods:
-            mesh = self.mesh.decimated(max_faces)
-            if self.mesh.outline_agreement(mesh) < LOD_AGREEMENT:
-                mesh = self.lod(2 * max_faces)
-            self._lods[max_faces] = mesh
-        return self._lods[max_faces]
+        assert self.levels is not None
+        return self.levels.lod(max_faces, self._decimate)
+
+    def _decimate(self, max_faces: int) -> Mesh:
+        mesh = self.mesh.decimated(max_faces)
+        if self.mesh.outline_agreement(mesh) < LOD_AGREEMENT:
+            mesh = self.lod(2 * max_faces)
+        return mesh
+
+    def exterior(self, max_faces: int, renderer: Renderer) -> Mesh:
+        """:meth:`Renderer.exterior` of :meth:`lod`, computed once per model and GL driver."""
+        assert self.levels is not None
+        return self.levels.exterior(max_faces, self.lod(max_faces), renderer)
+
+    def prepare(self, renderer: Renderer, budgets: Sequence[int] | None = None,
+                progress: Callable[[str], None] | None = None) -> None:
+        """Compute (or read back) every level the registration's defaults use and its exterior
+        pass, so that no registration of this model prepares anything (``progress`` is told
+        each step)."""
+        import time
+
+        from .store import default_budgets
+
+        for b in budgets if budgets is not None else default_budgets(self.mesh.n_faces):
+            t = time.perf_counter()
+            mesh = self.exterior(b, renderer)
+            if progress is not None:
+                progress(f"level {b}: {mesh.n_faces} faces ({time.perf_counter() - t:.1f} s)")
 
 
-def _complete(info: ModelInfo, mesh: Mesh) -> ModelInfo:
+def _complete(info: ModelInfo, mesh: Mesh, levels: Levels | None = None) -> ModelInfo:
     """Fill in missing wheel metadata from the mesh and record that it was estimated."""
     if info.wheels is not None:
         return info
-    wheels = estimate_wheels(mesh.vertices, parse_axis(info.up), parse_axis(info.forward))
+
+    def estimate() -> dict[str, object]:
+        return estimate_wheels(mesh.vertices, parse_axis(info.up), parse_axis(info.forward)).to_dict()
+
+    found = levels.wheels(f"{info.up} {info.forward}", estimate) if levels is not None else estimate()
+    wheels = WheelGeometry.from_dict(found)
     return replace(info, wheels=wheels, estimated=tuple(sorted({*info.estimated, "wheels"})))
+
+
+def _open(path: Path, texture_dirs: Sequence[Path], store: ModelStore | None) -> tuple[Mesh, Levels | None]:
+    if store is None:
+        from .mesh import load_mesh
+
+        return load_mesh(path, texture_dirs=texture_dirs), None
+    return store.open(path, texture_dirs)
 
 
 def model_from_mesh(
@@ -78,16 +125,19 @@ def model_from_mesh(
     units: str = "m",
     meters_per_unit: float = 1.0,
     texture_dirs: tuple[str | Path, ...] = (),
+    store: ModelStore | None = None,
 ) -> VehicleModel:
-    """A model straight from a mesh file; its wheel metadata is estimated."""
+    """A model straight from a mesh file; its wheel metadata is estimated. With a ``store``,
+    the mesh is read from its prepared entry when there is a sound one, and prepared into it
+    otherwise."""
     p = Path(path).resolve()
     parse_axis(up), parse_axis(forward)
     if abs(parse_axis(up) @ parse_axis(forward)) > 0.5:
         raise ModelError(f"up {up} and forward {forward} must be different axes")
     dirs = tuple(Path(d) for d in texture_dirs)
     info = ModelInfo(p.stem, p.stem, p, units, meters_per_unit, up, forward, None, texture_dirs=dirs)
-    mesh = load_mesh(p, texture_dirs=dirs)
-    return VehicleModel(_complete(info, mesh), mesh)
+    mesh, levels = _open(p, dirs, store)
+    return VehicleModel(_complete(info, mesh, levels), mesh, levels)
 
 
 AUTO = "auto"
@@ -106,8 +156,10 @@ def install_model(
     up: str = "+z",
     forward: str = "+x",
     units: str = "m",
+    store: ModelStore | None = None,
 ) -> ModelInfo:
-    """Copy a mesh into ``root/model_id/`` with a ``model.json`` whose wheels are estimated.
+    """Copy a mesh into ``root/model_id/`` with a ``model.json`` whose wheels are estimated
+    (and, with a ``store``, its parsed mesh kept there for the workers).
 
     The mesh is loaded first, so a file that is not a usable mesh (no faces, unknown format,
     same up and forward axes) raises ModelError and leaves nothing behind. The metadata is
@@ -118,7 +170,7 @@ def install_model(
     if units not in UNITS:
         raise ModelError(f"unknown units {units!r}; choose one of {', '.join(UNITS)}")
     src = Path(mesh_file)
-    model = model_from_mesh(src, up=up, forward=forward, units=units, meters_per_unit=UNITS[units])
+    model = model_from_mesh(src, up=up, forward=forward, units=units, meters_per_unit=UNITS[units], store=store)
     folder = Path(root) / model_id
     if (folder / "model.json").exists():
         raise ModelError(f"model {model_id!r} exists already")
@@ -144,6 +196,9 @@ class ModelLibrary:
         a model id found in an earlier folder hides the same id in a later one.
     cache_size : int, keyword-only
         How many loaded models to keep in memory.
+    store : ModelStore, keyword-only, optional
+        Where prepared models are kept between processes (none: every process prepares the
+        models it loads).
     """
 
     def __init__(
@@ -152,12 +207,14 @@ class ModelLibrary:
         *,
         extra_roots: Sequence[str | Path] = (),
         cache_size: int = 8,
+        store: ModelStore | None = None,
     ) -> None:
         self.root = Path(root) if root is not None else default_library_root()
         self.roots = (self.root, *(Path(r) for r in extra_roots))
         self._cache: OrderedDict[str, VehicleModel] = OrderedDict()
         self._lock = threading.Lock()
         self._cache_size = cache_size
+        self.store = store
 
     def ids(self) -> list[str]:
         """Ids of every model in the library, sorted."""
@@ -214,8 +271,8 @@ class ModelLibrary:
                 self._cache.move_to_end(model_id)
                 return cached
         info = self.info(model_id)
-        mesh = load_mesh(info.mesh_path, texture_dirs=info.texture_dirs)
-        model = VehicleModel(_complete(info, mesh), mesh)
+        mesh, levels = _open(info.mesh_path, info.texture_dirs, self.store)
+        model = VehicleModel(_complete(info, mesh, levels), mesh, levels)
         with self._lock:
             self._cache[model_id] = model
             while len(self._cache) > self._cache_size:

@@ -16,15 +16,20 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
-import trimesh
 
 from .errors import EmptyMeshError, ModelError
 
-__all__ = ["KINDS", "Part", "Mesh", "load_mesh", "classify_part"]
+if TYPE_CHECKING:
+    import trimesh
+
+# trimesh, cv2 and fast_simplification are imported where they are used: a process that only
+# reads prepared models (vehicle_pose.store) never needs them.
+
+__all__ = ["KINDS", "Part", "Mesh", "load_mesh", "load_mesh_recording", "classify_part"]
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +153,7 @@ class Mesh:
         if self.n_faces <= max_faces:
             return self
         import fast_simplification
+        import trimesh
 
         budgets = _share_faces([len(p.faces) for p in self.parts], max_faces)
         parts = []
@@ -176,6 +182,8 @@ class Mesh:
         Drawn on the CPU (no OpenGL) within ``frame`` = (centre, radius), the mesh's enclosing
         sphere by default; :meth:`outline_agreement` compares two meshes on the same frame.
         """
+        import cv2
+
         centre, radius = self.sphere if frame is None else frame
         dirs = [np.eye(3)[i] * s for i in range(3) for s in (1.0, -1.0)]
         dirs += [np.array(d) / np.sqrt(3.0) for d in itertools.product((1.0, -1.0), repeat=3)]
@@ -235,31 +243,54 @@ def _mean_albedo(part: Part) -> float:
     return base * float((part.texture.reshape(-1, 3) @ _LUMA).mean() / 255.0)
 
 
-class _SearchResolver(trimesh.resolvers.FilePathResolver):
-    """Finds texture files by relative path, then by base name in extra folders."""
+def _resolver(mesh_path: Path, extra_dirs: Sequence[Path]) -> Any:
+    """A trimesh resolver that finds texture files by relative path, then by base name in
+    extra folders, and records what it read (``read``) and what it could not find (``missing``)."""
+    import trimesh
 
-    def __init__(self, mesh_path: Path, extra_dirs: Sequence[Path]) -> None:
-        super().__init__(str(mesh_path))
-        self._dirs = [mesh_path.parent, *extra_dirs]
+    class SearchResolver(trimesh.resolvers.FilePathResolver):  # type: ignore[misc]
+        def __init__(self) -> None:
+            super().__init__(str(mesh_path))
+            self._dirs = [mesh_path.parent, *extra_dirs]
+            self.read: list[Path] = []
+            self.missing: list[str] = []
 
-    def get(self, name: str) -> bytes:
-        base = name.replace("\\", "/").split("/")[-1]
-        candidates = [d / name for d in self._dirs[:1]] + [d / base for d in self._dirs]
-        for c in candidates:
-            if c.is_file():
-                return c.read_bytes()
-        for d in self._dirs:
-            if d.is_dir():
-                for f in d.iterdir():
-                    if f.name.lower() == base.lower():
-                        return f.read_bytes()
-        raise FileNotFoundError(name)
+        def get(self, name: str) -> bytes:
+            found = _find(self._dirs, name)
+            if found is None:
+                self.missing.append(name)
+                raise FileNotFoundError(name)
+            self.read.append(found.resolve())
+            return found.read_bytes()
+
+    return SearchResolver()
+
+
+def _find(dirs: Sequence[Path], name: str) -> Path | None:
+    base = name.replace("\\", "/").split("/")[-1]
+    candidates = [d / name for d in dirs[:1]] + [d / base for d in dirs]
+    for c in candidates:
+        if c.is_file():
+            return c
+    for d in dirs:
+        if d.is_dir():
+            for f in d.iterdir():
+                if f.name.lower() == base.lower() and f.is_file():
+                    return f
+    return None
+
+
+def resolves(mesh_path: Path, extra_dirs: Sequence[Path], name: str) -> bool:
+    """Whether a file the mesh names (``name``) is found now."""
+    return _find([mesh_path.parent, *extra_dirs], name) is not None
 
 
 def _shading_geometry(
     tm: trimesh.Trimesh,
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float32], npt.NDArray[np.uint32]]:
     """Vertices, unit normals and faces; flat-shaded when the winding cannot be made consistent."""
+    import trimesh
+
     if not tm.is_winding_consistent:
         trimesh.repair.fix_winding(tm)
     if tm.is_winding_consistent:
@@ -274,6 +305,8 @@ def _shading_geometry(
 
 
 def _part_from_trimesh(name: str, tm: trimesh.Trimesh) -> Part | None:
+    import trimesh
+
     tm.remove_unreferenced_vertices()
     if len(tm.faces) == 0:
         return None
@@ -340,10 +373,18 @@ def load_mesh(path: str | Path, *, texture_dirs: Sequence[str | Path] = ()) -> M
     EmptyMeshError
         The file holds no triangles.
     """
+    return load_mesh_recording(path, texture_dirs=texture_dirs)[0]
+
+
+def load_mesh_recording(path: str | Path, *, texture_dirs: Sequence[str | Path] = ()) -> tuple[Mesh, list[Path], list[str]]:
+    """:func:`load_mesh`, also returning the files the mesh file led to reading (material
+    libraries, textures, buffers) and the names it referred to that were not found."""
+    import trimesh
+
     p = Path(path)
     if not p.is_file():
         raise ModelError(f"mesh file {p} does not exist")
-    resolver = _SearchResolver(p, [Path(d) for d in texture_dirs])
+    resolver = _resolver(p, [Path(d) for d in texture_dirs])
     try:
         scene = trimesh.load(str(p), force="scene", resolver=resolver)
     except Exception as exc:  # trimesh raises many types for malformed files
@@ -361,4 +402,4 @@ def load_mesh(path: str | Path, *, texture_dirs: Sequence[str | Path] = ()) -> M
             parts.append(part)
     if not parts:
         raise EmptyMeshError(f"mesh {p.name} has no faces")
-    return Mesh(tuple(parts), source=str(p))
+    return Mesh(tuple(parts), source=str(p)), list(dict.fromkeys(resolver.read)), list(dict.fromkeys(resolver.missing))

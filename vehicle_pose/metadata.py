@@ -87,6 +87,17 @@ class WheelGeometry:
             "wheel_radius": float(self.wheel_radius),
         }
 
+    @classmethod
+    def from_dict(cls, w: dict[str, Any]) -> WheelGeometry:
+        """The inverse of :meth:`to_dict`."""
+        return cls(
+            np.asarray(w["rear_axle_center"], np.float64),
+            np.asarray(w["front_axle_center"], np.float64),
+            np.asarray(w["axle_direction"], np.float64),
+            float(w["track_width"]),
+            float(w["wheel_radius"]),
+        )
+
 
 _WHEEL_KEYS = ("rear_axle_center", "front_axle_center", "axle_direction", "track_width", "wheel_radius")
 
@@ -217,16 +228,8 @@ class ModelInfo:
         for key in ("id", "mesh"):
             if key not in data:
                 raise ModelError(f"model metadata lacks {key!r}")
-        wheels = None
         w = data.get("wheels") or {}
-        if all(k in w for k in _WHEEL_KEYS):
-            wheels = WheelGeometry(
-                np.asarray(w["rear_axle_center"], np.float64),
-                np.asarray(w["front_axle_center"], np.float64),
-                np.asarray(w["axle_direction"], np.float64),
-                float(w["track_width"]),
-                float(w["wheel_radius"]),
-            )
+        wheels = WheelGeometry.from_dict(w) if all(k in w for k in _WHEEL_KEYS) else None
         known = {"id", "name", "mesh", "units", "meters_per_unit", "up", "forward", "wheels", "estimated", "texture_dirs"}
         return cls(
             id=str(data["id"]),

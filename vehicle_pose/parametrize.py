@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .camera import Camera
+from .options import PARAMETRIZATION_NAMES
 from .pose import Side, SideGeometry, Theta, camera_to_theta, theta_to_camera
 
 __all__ = ["Parametrization", "ThetaParams", "ViewParams", "PARAMETRIZATIONS"]
@@ -110,4 +111,4 @@ class ViewParams:
         return Camera(K, R, centre_cam - R @ self.centre, ref.width, ref.height)
 
 
-PARAMETRIZATIONS = ("theta", "view")
+PARAMETRIZATIONS = PARAMETRIZATION_NAMES
