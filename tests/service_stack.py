@@ -56,6 +56,8 @@ def start_stack(data_dir: Path, *, workers: int = 2, extra_env: dict[str, str] |
     port = free_port()
     log = data_dir / "service.log"
     env = {k: v for k, v in os.environ.items() if not k.startswith("VP_")}
+    if "VEHICLE_POSE_CACHE_DIR" in os.environ:  # every service of a test session prepares the models once
+        env["VP_PREPARED_DIR"] = str(Path(os.environ["VEHICLE_POSE_CACHE_DIR"]) / "service")
     env.update(extra_env or {})
     with log.open("wb") as out:
         proc = subprocess.Popen(

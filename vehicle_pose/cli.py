@@ -89,6 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     q.add_argument("--units", default="m", choices=sorted(UNITS), help="mesh units, for mesh paths")
     q.add_argument("--models-dir", help="model library folder")
     for a in (r, q):
+        a.add_argument("--texture-dir", action="append", default=[], metavar="DIR",
+                       help="for a mesh path: a further folder searched for its texture images (repeatable)")
         a.add_argument("--cache-dir", help="where prepared models are kept "
                        "(default $VEHICLE_POSE_CACHE_DIR, else $XDG_CACHE_HOME/vehicle-pose, else ~/.cache/vehicle-pose)")
     r.add_argument("--no-cache", action="store_true", help="prepare the model in memory only, reading and writing no cache")
@@ -120,7 +122,8 @@ def _load_models(args: argparse.Namespace, specs: list[str]) -> list[VehicleMode
     for spec in specs:
         if _is_path(spec):
             models.append(model_from_mesh(spec, up=args.up, forward=args.forward, units=args.units,
-                                          meters_per_unit=UNITS[args.units], store=store))
+                                          meters_per_unit=UNITS[args.units], store=store,
+                                          texture_dirs=tuple(args.texture_dir)))
         else:
             models += [lib.load(model_id) for model_id in lib.resolve(spec)]
     if store is not None:

@@ -84,7 +84,8 @@ class VehicleModel:
                 progress: Callable[[str], None] | None = None) -> None:
         """Compute (or read back) every level the registration's defaults use and its exterior
         pass, so that no registration of this model prepares anything (``progress`` is told
-        each step)."""
+        each step). One level at a time: the simplifier keeps global state, so decimations in
+        threads corrupt each other."""
         import time
 
         from .store import default_budgets

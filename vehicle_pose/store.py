@@ -281,14 +281,14 @@ class ModelStore:
         mesh, read, missing = load_mesh_recording(p, texture_dirs=dirs)
         levels = Levels(mesh, entry)
         sources = [{"path": str(f), "hash": _file_hash(f)} for f in read if f.is_file()]
-        mesh_id, desc = entry.put_mesh(mesh)
-
-        def start(data: dict[str, Any]) -> None:
-            data.clear()
-            data.update(preparation=PREPARATION, mesh=str(p), sources=sources, missing=missing,
-                        meshes={mesh_id: desc}, lods={"full": mesh_id}, exteriors={}, wheels={})
-
         try:
+            mesh_id, desc = entry.put_mesh(mesh)
+
+            def start(data: dict[str, Any]) -> None:
+                data.clear()
+                data.update(preparation=PREPARATION, mesh=str(p), sources=sources, missing=missing,
+                            meshes={mesh_id: desc}, lods={"full": mesh_id}, exteriors={}, wheels={})
+
             entry.update(start)
         except OSError as exc:
             log.warning("cannot write prepared model %s: %s", entry.folder, exc)
@@ -355,6 +355,15 @@ class Levels:
         except (OSError, CorruptEntry) as exc:
             log.warning("cannot add to prepared model %s: %s", entry.folder, exc)
             self.entry = None
+
+    def has_lod(self, max_faces: int) -> bool:
+        """Whether the level for ``max_faces`` is in memory or in the entry."""
+        if max_faces >= self.mesh.n_faces or max_faces in self._lods:
+            return True
+        try:
+            return self.entry is not None and str(max_faces) in self.entry.manifest(reload=True).get("lods", {})
+        except CorruptEntry:
+            return False
 
     def lod(self, max_faces: int, make: Callable[[int], Mesh]) -> Mesh:
         """The level for ``max_faces``: from memory, the entry, or ``make``."""

@@ -16,6 +16,7 @@ from app.core.config import Settings, get_settings
 
 QUEUE = "registrations"
 TASK = "worker.tasks.register_job"
+PREPARE_TASK = "worker.tasks.prepare_model"
 
 
 def make_celery(settings: Settings) -> Celery:
@@ -30,7 +31,7 @@ def make_celery(settings: Settings) -> Celery:
         broker_transport_options={"visibility_timeout": settings.visibility_timeout_s},
         broker_connection_retry_on_startup=True,
         task_default_queue=QUEUE,
-        task_routes={TASK: {"queue": QUEUE}},
+        task_routes={TASK: {"queue": QUEUE}, PREPARE_TASK: {"queue": QUEUE}},
         task_ignore_result=True,
         task_serializer="json",
         accept_content=["json"],

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 from typing import Any
 
 from celery import Task
 from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
-from celery.signals import worker_process_init
+from celery.signals import worker_init, worker_process_init
 
+from app.core.config import get_settings
 from app.core.db import get_engine
 
-from .celery_app import TASK, celery_app
+from .celery_app import PREPARE_TASK, TASK, celery_app
 from .jobs import Retry, fail_job, requeue, run_job
 
 log = logging.getLogger(__name__)
@@ -24,6 +27,31 @@ MAX_RETRIES = 12
 def _fresh_process(**_: object) -> None:
     """A pool process starts with its own database connections (the GL context comes lazily)."""
     get_engine.cache_clear()
+
+
+@worker_init.connect
+def warm_library(**_: object) -> None:
+    """Before the pool starts, prepare every library model into the store (worker.warm), so no
+    job pays for preparing a model; a failure is logged and the worker starts all the same."""
+    timeout = get_settings().warm_timeout_s
+    try:
+        done = subprocess.run([sys.executable, "-m", "worker.warm"], timeout=timeout, check=False)
+    except subprocess.TimeoutExpired:
+        log.warning("preparing the library took over %s s; the rest is prepared by the jobs", timeout)
+        return
+    if done.returncode != 0:
+        log.warning("some library models could not be prepared (exit %s); see the log above", done.returncode)
+
+
+@celery_app.task(name=PREPARE_TASK, ignore_result=True)
+def prepare_model(model_id: str) -> None:
+    """Prepare a model that was just uploaded (sent by the API; best effort)."""
+    from .warm import prepare_model as prepare
+
+    try:
+        log.info("model %s prepared (%.1f s)", model_id, prepare(model_id))
+    except Exception as exc:  # the model stays usable: its first job prepares it
+        log.warning("cannot prepare model %s: %s: %s", model_id, type(exc).__name__, exc)
 
 
 class RegistrationTask(Task):

@@ -30,6 +30,7 @@ class Settings(BaseSettings):
     s3_secret_key: SecretStr | None = None
     models_dir: Path | None = None
     upload_models_dir: Path | None = None
+    prepared_dir: Path | None = None
 
     max_upload_bytes: int = Field(default=25 * 1024 * 1024, gt=0)
     max_photo_pixels: int = Field(default=50_000_000, gt=0)
@@ -39,6 +40,7 @@ class Settings(BaseSettings):
     visibility_timeout_s: int = Field(default=600, gt=0)
     max_attempts: int = Field(default=3, ge=1)
     progress_interval_s: float = Field(default=0.5, ge=0.0)
+    warm_timeout_s: float = Field(default=900.0, gt=0.0)
     bootstrap_admin_key: SecretStr | None = None
     bootstrap_client_key: SecretStr | None = None
 
@@ -50,6 +52,8 @@ class Settings(BaseSettings):
             self.storage_url = str((self.data_dir / "storage").resolve())
         if self.upload_models_dir is None:
             self.upload_models_dir = (self.data_dir / "models").resolve()
+        if self.prepared_dir is None:
+            self.prepared_dir = (self.data_dir / "prepared").resolve()
         if self.job_soft_time_limit_s >= self.job_hard_time_limit_s:
             raise ValueError("job_soft_time_limit_s must be below job_hard_time_limit_s")
         if self.visibility_timeout_s <= self.job_hard_time_limit_s:

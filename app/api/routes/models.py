@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 import tempfile
 from pathlib import Path
@@ -14,11 +15,12 @@ from vehicle_pose import EmptyMeshError, ModelError, UnknownModelError
 from vehicle_pose.library import MODEL_ID, install_model
 from vehicle_pose.metadata import UNITS, ModelInfo
 
-from ...core.library import get_library
+from ...core.library import get_library, get_store
 from ...core.problems import Problem
 from ...schemas import ModelOut
 from ..deps import AdminClient, CurrentClient, SettingsDep
 
+log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/models", tags=["models"])
 
 _PROBLEM = {"content": {"application/problem+json": {}}}
@@ -37,6 +39,16 @@ def _out(info: ModelInfo) -> ModelOut:
         estimated=list(info.estimated),
         links={"self": f"/v1/models/{info.id}"},
     )
+
+
+def _prepare_soon(model_id: str) -> None:
+    """Ask a worker to prepare the new model's levels now rather than at its first job."""
+    from worker.celery_app import PREPARE_TASK, get_celery
+
+    try:
+        get_celery().send_task(PREPARE_TASK, args=[model_id], retry=False)
+    except Exception as exc:  # kombu raises many connection error types; the model works regardless
+        log.warning("cannot ask a worker to prepare model %s: %s", model_id, exc)
 
 
 @router.get("", response_model=list[ModelOut])
@@ -84,10 +96,12 @@ def upload_model(
         with path.open("wb") as f:
             shutil.copyfileobj(mesh.file, f)
         try:
-            info = install_model(settings.upload_models_dir, model_id, path, name=name, up=up, forward=forward, units=units)
+            info = install_model(settings.upload_models_dir, model_id, path, name=name, up=up, forward=forward,
+                                 units=units, store=get_store())
         except EmptyMeshError as exc:
             raise Problem(422, "empty-mesh", str(exc)) from None
         except ModelError as exc:
             raise Problem(422, "invalid-model", str(exc)) from None
+    _prepare_soon(model_id)
     body = _out(info).model_dump(mode="json")
     return JSONResponse(body, status_code=201, headers={"Location": f"/v1/models/{model_id}"})
