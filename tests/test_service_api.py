@@ -9,16 +9,20 @@ import signal
 import socket
 import struct
 import subprocess
+import time
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from conftest import projection_error, view
 from PIL import Image
 from service_stack import SERVICE, encode, wait_for
 from test_register import perturbed
 
 from vehicle_pose.camera import Camera
+from vehicle_pose.library import ModelLibrary
 from vehicle_pose.synth import LIGHTINGS, synthesize
 
 pytestmark = pytest.mark.slow
@@ -352,3 +356,37 @@ def test_a_job_past_its_time_limit_fails_as_timeout(tmp_path, scene):
             assert c.get("/readyz").status_code == 200
     finally:
         stack.stop()
+
+
+def _prepared_entries() -> dict[str, dict]:
+    """Manifests of the service's prepared models by mesh path (tests/service_stack.py)."""
+    root = Path(os.environ["VEHICLE_POSE_CACHE_DIR"]) / "service"
+    out = {}
+    for manifest in root.glob("*/manifest.json"):
+        data = json.loads(manifest.read_text())
+        out[data["mesh"]] = data
+    return out
+
+
+def test_workers_warm_the_library_and_prepare_uploads(service, sedan, tmp_path):
+    entries = _prepared_entries()
+    for model_id in ModelLibrary().ids():
+        entry = entries[str(ModelLibrary().info(model_id).mesh_path)]
+        assert entry["exteriors"] and "4096" in entry["lods"], model_id
+    scene = trimesh.load(sedan.info.mesh_path, force="scene")
+    scene.apply_scale(1.1)
+    mesh = tmp_path / "bigger.glb"
+    scene.export(mesh)
+    with service.client("admin") as admin:
+        form = {"model_id": "bigger-sedan", "up": "+z", "forward": "+x", "units": "m"}
+        created = admin.post("/v1/models", data=form, files={"mesh": ("car.glb", mesh.read_bytes(), "model/gltf-binary")})
+        assert created.status_code == 201, created.text
+    path = str((service.data_dir / "models" / "bigger-sedan" / "model.glb").resolve())
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        entry = _prepared_entries().get(path)
+        if entry is not None and len(entry["exteriors"]) >= 3:
+            break
+        time.sleep(0.5)
+    else:
+        raise AssertionError(f"the uploaded model was not prepared: {_prepared_entries().get(path)}\n{service.log_tail()}")

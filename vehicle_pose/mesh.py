@@ -358,12 +358,15 @@ def _oriented(faces: npt.NDArray[np.integer]) -> npt.NDArray[np.int64]:
     cols = np.r_[fb, fa, roots]
     g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(F + 1, F + 1)).tocsr()
     bfs, pred = breadth_first_order(g, F, directed=True, return_predecessors=True)
-    flag = coo_matrix((np.r_[same, same].astype(np.int8) + 1, (np.r_[fa, fb], np.r_[fb, fa])), shape=(F, F)).tocsr()
+    # Whether each tree edge (parent, face) joins the two faces against each other's winding.
+    pair = np.r_[fa * F + fb, fb * F + fa]
+    by_pair = np.argsort(pair)
+    pair, flags = pair[by_pair], np.r_[same, same][by_pair]
     nodes = bfs[1:]
     p = pred[nodes]
     inc = np.zeros(F + 1, np.bool_)
     inner = p < F
-    inc[nodes[inner]] = np.asarray(flag[p[inner], nodes[inner]]).ravel() == 2
+    inc[nodes[inner]] = flags[np.searchsorted(pair, p[inner] * F + nodes[inner])]
     flip = _propagate(nodes, pred.astype(np.int64), inc, F)
     out = faces.copy()
     out[flip] = out[flip][:, ::-1]
