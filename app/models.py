@@ -104,6 +104,19 @@ class Registration(Base):
         """The job succeeded or failed; it will not run again."""
         return self.status in (JobStatus.succeeded.value, JobStatus.failed.value)
 
+    @property
+    def never_queued(self) -> bool:
+        """The job failed at submission because the queue could not be reached: it never ran."""
+        return self.status == JobStatus.failed.value and self.error_type == "broker-unavailable" and self.attempts == 0
+
+    def requeue_submission(self) -> None:
+        """Make a never-queued job queued again (a client's retry with the same Idempotency-Key)."""
+        self.status = JobStatus.queued.value
+        self.finished_at = None
+        self.duration_s = None
+        self.error_type = None
+        self.error_detail = None
+
     def finish(self, status: JobStatus, error_type: str | None = None, detail: str | None = None) -> None:
         """End the job: its final status, the time to result, and the reason when it failed."""
         self.status = status.value

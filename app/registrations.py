@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -61,7 +62,9 @@ def parse_hints(
     camera = None
     if init_camera:
         try:
-            camera = Camera.from_dict(json.loads(init_camera)).to_dict()
+            parsed = Camera.from_dict(json.loads(init_camera))
+            parsed.for_photo(photo.width, photo.height)
+            camera = parsed.to_dict()
         except json.JSONDecodeError as exc:
             raise Problem(422, "invalid-camera", f"init_camera is not valid JSON: {exc.msg}") from None
         except (ValueError, RecursionError) as exc:  # a 5000-digit integer, 100 000 nested brackets
@@ -78,9 +81,21 @@ def parse_hints(
     if options:
         try:
             opts = RegistrationOptionsIn.model_validate_json(options).engine_kwargs()
+        except ValidationError as exc:
+            raise Problem(422, "invalid-options", "invalid options: " + _explain(exc)) from None
         except ValueError as exc:
             raise Problem(422, "invalid-options", str(exc).splitlines()[0] if str(exc) else "invalid options") from None
     return camera, box, opts
+
+
+def _explain(exc: ValidationError) -> str:
+    """Each error as ``field: reason`` (pydantic's own first line names only the model)."""
+    parts = []
+    for err in exc.errors(include_url=False)[:5]:
+        where = ".".join(str(p) for p in err.get("loc", ())) or "options"
+        parts.append(f"{where}: {err.get('msg', 'invalid')}")
+    more = len(exc.errors()) - len(parts)
+    return "; ".join(parts) + (f" (and {more} more)" if more > 0 else "")
 
 
 def check_model(model_id: str) -> list[str]:

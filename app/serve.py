@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
+import secrets
 import shutil
 import signal
 import socket
@@ -52,13 +54,20 @@ def _start_redis(data_dir: Path) -> tuple[subprocess.Popen[bytes], str]:
     folder = data_dir / "redis"
     folder.mkdir(parents=True, exist_ok=True)
     port = _free_port()
+    # A password of this start: another local user cannot reach the queue. It goes in on stdin
+    # (redis-server's "-" config file), not in the arguments that every user's ps shows.
+    password = secrets.token_urlsafe(24)
     proc = subprocess.Popen(
-        [binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder.resolve()),
+        [binary, "-", "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder.resolve()),
          "--appendonly", "yes", "--save", "", "--daemonize", "no", "--loglevel", "warning"],
+        stdin=subprocess.PIPE,
         stdout=subprocess.DEVNULL,
     )
+    assert proc.stdin is not None
+    proc.stdin.write(f"requirepass {password}\n".encode())
+    proc.stdin.close()
     _wait_port(port, proc, "redis-server")
-    return proc, f"redis://127.0.0.1:{port}/0"
+    return proc, f"redis://:{password}@127.0.0.1:{port}/0"
 
 
 def _bootstrap_keys(settings: Settings, *, keep_file: bool) -> dict[str, str]:
@@ -147,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
         _wait_port(args.port, procs[-1], "the API")
         url = f"http://{args.host}:{args.port}"
         print(f"vehicle-pose service on {url}  (admin page {url}/admin, API docs {url}/docs)", flush=True)
-        print(f"data: {data_dir}  broker: {env['VP_BROKER_URL']}  workers: {args.workers}", flush=True)
+        broker = re.sub(r"//:[^@]*@", "//:***@", env["VP_BROKER_URL"])
+        print(f"data: {data_dir}  broker: {broker}  workers: {args.workers}", flush=True)
         for name, key in keys.items():
             print(f"API key ({name}): {key}", flush=True)
         print(f"keys are kept in {data_dir / 'credentials.json'}; stop with Ctrl-C", flush=True)

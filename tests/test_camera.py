@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from vehicle_pose.camera import MAX_MAGNITUDE, Camera
@@ -39,3 +40,15 @@ def test_a_camera_file_that_json_cannot_hold_is_a_camera_error(tmp_path, text):
     path.write_text(text)
     with pytest.raises(CameraError, match="cannot be read"):
         Camera.load(path)
+
+
+def test_a_camera_for_another_aspect_ratio_is_refused_not_stretched():
+    cam = Camera(np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.eye(3), np.array([0, 0, 10.0]), 640, 480)
+    assert cam.for_photo(640, 480) is cam
+    half = cam.for_photo(320, 240)
+    assert half.K[0, 0] == pytest.approx(250.0) and half.K[1, 1] == pytest.approx(250.0)
+    cam.for_photo(1000, 751)  # rounding of a resize: within 1 %
+    with pytest.raises(CameraError, match="aspect ratio"):
+        cam.for_photo(480, 640)  # the photo turned by its EXIF orientation
+    with pytest.raises(CameraError, match="640x480"):
+        cam.for_photo(640, 360)

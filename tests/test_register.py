@@ -8,7 +8,7 @@ from conftest import projection_error, view
 from scipy.spatial.transform import Rotation
 
 from vehicle_pose.camera import Camera
-from vehicle_pose.errors import CameraError, PoseError
+from vehicle_pose.errors import BlankPhotoError, CameraError, PoseError
 from vehicle_pose.pipeline import RegistrationOptions, register
 from vehicle_pose.synth import LIGHTINGS, synthesize
 
@@ -99,6 +99,11 @@ def test_bad_hints_are_clear_errors(sedan, renderer):
         register(photo, sedan, bbox="1,2,3", renderer=renderer)
     with pytest.raises(ValueError, match="unknown loss"):
         register(photo, sedan, init_camera=truth, options=RegistrationOptions(loss="nope"), renderer=renderer)
+    with pytest.raises(CameraError, match="aspect ratio"):
+        register(photo[:, :360], sedan, init_camera=truth, renderer=renderer)
+    for flat in (np.zeros_like(photo), np.full_like(photo, 128) + (np.arange(photo.size) % 3).reshape(photo.shape).astype(np.uint8)):
+        with pytest.raises(BlankPhotoError, match="nothing to register"):
+            register(flat, sedan, init_camera=truth, renderer=renderer)
 
 
 @pytest.mark.parametrize("loss", ["invariant-paper", "correlation", "squared", "silhouette-iou", "mutual-information", "invariant-parts"])

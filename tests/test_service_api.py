@@ -341,6 +341,25 @@ def test_operations_endpoints(service):
         assert_problem(c.get("/no/such/route"), 404, "not-found")
 
 
+def test_hardening_headers_local_docs_private_files_and_a_locked_broker(service):
+    with service.client(None) as c, service.client("admin") as admin:
+        docs = c.get("/docs")
+        assert docs.status_code == 200 and "/docs-static/swagger-ui-bundle.js" in docs.text
+        assert "cdn" not in docs.text.lower()
+        assert c.get("/docs-static/swagger-ui-bundle.js").status_code == 200
+        page = admin.get("/admin")
+        assert page.status_code == 200
+        assert "frame-ancestors 'none'" in page.headers["content-security-policy"]
+        for r in (page, c.get("/healthz")):
+            assert r.headers["x-content-type-options"] == "nosniff" and r.headers["x-frame-options"] == "DENY"
+    mode = (service.data_dir / "vehicle_pose.db").stat().st_mode
+    assert mode & 0o077 == 0, oct(mode)
+    _, port = _redis(service)
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+        sock.sendall(b"PING\r\n")
+        assert sock.recv(100).startswith(b"-NOAUTH")
+
+
 def test_a_job_past_its_time_limit_fails_as_timeout(tmp_path, scene):
     from service_stack import start_stack
 
@@ -358,21 +377,19 @@ def test_a_job_past_its_time_limit_fails_as_timeout(tmp_path, scene):
         stack.stop()
 
 
-def _prepared_entries() -> dict[str, dict]:
-    """Manifests of the service's prepared models by mesh path (tests/service_stack.py)."""
-    root = Path(os.environ["VEHICLE_POSE_CACHE_DIR"]) / "service"
-    out = {}
-    for manifest in root.glob("*/manifest.json"):
-        data = json.loads(manifest.read_text())
-        out[data["mesh"]] = data
-    return out
+def _prepared(mesh: Path) -> dict | None:
+    """The manifest of a mesh's entry in the services' store (tests/service_stack.py)."""
+    from vehicle_pose.store import ModelStore
+
+    store = ModelStore(Path(os.environ["VEHICLE_POSE_CACHE_DIR"]) / "service")
+    manifest = store.root / store.key(mesh.resolve(), []) / "manifest.json"
+    return json.loads(manifest.read_text()) if manifest.is_file() else None
 
 
 def test_workers_warm_the_library_and_prepare_uploads(service, sedan, tmp_path):
-    entries = _prepared_entries()
     for model_id in ModelLibrary().ids():
-        entry = entries[str(ModelLibrary().info(model_id).mesh_path)]
-        assert entry["exteriors"] and "4096" in entry["lods"], model_id
+        entry = _prepared(ModelLibrary().info(model_id).mesh_path)
+        assert entry is not None and entry["exteriors"] and "4096" in entry["lods"], model_id
     scene = trimesh.load(sedan.info.mesh_path, force="scene")
     scene.apply_scale(1.1)
     mesh = tmp_path / "bigger.glb"
@@ -381,12 +398,72 @@ def test_workers_warm_the_library_and_prepare_uploads(service, sedan, tmp_path):
         form = {"model_id": "bigger-sedan", "up": "+z", "forward": "+x", "units": "m"}
         created = admin.post("/v1/models", data=form, files={"mesh": ("car.glb", mesh.read_bytes(), "model/gltf-binary")})
         assert created.status_code == 201, created.text
-    path = str((service.data_dir / "models" / "bigger-sedan" / "model.glb").resolve())
+    entry = _prepared(mesh)
+    assert entry is not None and entry["exteriors"] == {}  # parsed by the API at upload
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        entry = _prepared_entries().get(path)
+        entry = _prepared(mesh)
         if entry is not None and len(entry["exteriors"]) >= 3:
             break
         time.sleep(0.5)
     else:
-        raise AssertionError(f"the uploaded model was not prepared: {_prepared_entries().get(path)}\n{service.log_tail()}")
+        raise AssertionError(f"the uploaded model was not prepared: {entry}\n{service.log_tail()}")
+
+
+def _redis(stack) -> tuple[int, int]:
+    """Pid and port of the embedded redis-server that the stack's launcher started (its child
+    named redis-server; Redis shows ``host:port`` as its process title)."""
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            stat = (proc / "stat").read_text()
+            title = (proc / "cmdline").read_bytes().decode(errors="replace")
+        except OSError:
+            continue
+        comm, rest = stat[stat.index("(") + 1 : stat.rindex(")")], stat[stat.rindex(")") + 2 :].split()
+        if comm == "redis-server" and int(rest[1]) == stack.proc.pid:
+            return int(proc.name), int(title.split(":")[1].split()[0].strip("\0"))
+    raise AssertionError(f"no redis-server child of the launcher {stack.proc.pid}")
+
+
+def test_a_frozen_broker_answers_503_fast_and_the_retry_queues_the_same_job(tmp_path, scene):
+    """Redis stopped by SIGSTOP (it accepts connections and never answers): submissions get a
+    503 within seconds, the health endpoint keeps answering, and after recovery the client's
+    retry with the same Idempotency-Key queues that job, which then runs."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service_stack import start_stack
+
+    stack = start_stack(tmp_path, workers=1)
+    pid, _ = _redis(stack)
+    photo = encode(scene[0])
+    try:
+        with stack.client() as c:
+            os.kill(pid, signal.SIGSTOP)
+            try:
+                t = time.monotonic()
+                first = submit(c, photo, start=scene[2], headers={"Idempotency-Key": "frozen-1"})
+                assert_problem(first, 503, "broker-unavailable")
+                assert time.monotonic() - t < 10.0
+                def one() -> int:
+                    with stack.client() as other:
+                        return submit(other, photo, start=scene[2]).status_code
+
+                with ThreadPoolExecutor(12) as pool:
+                    hung = [pool.submit(one) for _ in range(12)]
+                    t = time.monotonic()
+                    assert c.get("/healthz").status_code == 200
+                    assert time.monotonic() - t < 2.0
+                    assert [f.result() for f in hung] == [503] * 12
+            finally:
+                os.kill(pid, signal.SIGCONT)
+            again = submit(c, photo, start=scene[2], headers={"Idempotency-Key": "frozen-1"})
+            assert again.status_code == 202, again.text
+            assert again.json()["status"] == "queued"
+            third = submit(c, photo, start=scene[2], headers={"Idempotency-Key": "frozen-1"})
+            assert third.json()["id"] == again.json()["id"]
+            body = wait_for(c, again.json()["id"], timeout=120)
+            assert body["status"] == "succeeded", body
+    finally:
+        stack.stop()

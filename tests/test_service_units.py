@@ -315,3 +315,38 @@ def test_create_key_needs_the_service_database(tmp_path):
     made = subprocess.run([str(service), "create-key", "someone", "--data-dir", str(data)], env=env,
                           capture_output=True, text=True, check=True)
     assert made.stdout.strip().startswith("vp_")
+
+
+@pytest.mark.parametrize(
+    ("options", "words"),
+    [
+        ('{"max_evaluations": 1}', ("max_evaluations", "greater than")),
+        ('{"loss": "nope"}', ("loss", "nope")),
+        ('{"edge_weight": "heavy"}', ("edge_weight", "number")),
+        ('{"max_evaluations": 1, "starts": 0}', ("max_evaluations", "starts")),
+    ],
+)
+def test_invalid_options_name_the_field_and_the_reason(options, words):
+    from app.core.problems import Problem
+    from app.registrations import Photo, parse_hints
+
+    photo = Photo(b"", "image/png", 640, 480)
+    with pytest.raises(Problem) as info:
+        parse_hints(None, None, options, photo)
+    assert info.value.slug == "invalid-options"
+    detail = info.value.detail
+    assert "validation error for" not in detail
+    for word in words:
+        assert word in detail, detail
+
+
+def test_a_start_camera_of_another_aspect_ratio_is_a_422():
+    from app.core.problems import Problem
+    from app.registrations import Photo, parse_hints
+
+    cam = {"K": [[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+           "t": [0, 0, 10], "width": 640, "height": 480}
+    assert parse_hints(json.dumps(cam), None, None, Photo(b"", "image/png", 320, 240))[0]["width"] == 640
+    with pytest.raises(Problem) as info:
+        parse_hints(json.dumps(cam), None, None, Photo(b"", "image/png", 480, 640))
+    assert info.value.slug == "invalid-camera" and "aspect ratio" in info.value.detail

@@ -104,6 +104,20 @@ class Camera:
         S = np.array([[sx, 0.0, 0.5 * (sx - 1.0)], [0.0, sy, 0.5 * (sy - 1.0)], [0.0, 0.0, 1.0]])
         return Camera(S @ self.K, self.R, self.t, width, height)
 
+    def for_photo(self, width: int, height: int, *, tolerance: float = 0.01) -> Camera:
+        """:meth:`scaled` to a photo of ``width`` x ``height``; CameraError when the photo's
+        aspect ratio differs from the camera's by more than ``tolerance`` (a camera for another
+        picture, or for the photo turned by its EXIF orientation, would be stretched)."""
+        if (width, height) == (self.width, self.height):
+            return self
+        mine, theirs = self.width / self.height, width / height
+        if abs(mine / theirs - 1.0) > tolerance:
+            raise CameraError(
+                f"the camera is for a {self.width}x{self.height} image and the photo is {width}x{height}: "
+                f"another aspect ratio ({mine:.3f} against {theirs:.3f}), so it is not a camera of this photo"
+            )
+        return self.scaled(width, height)
+
     def cropped(self, x0: int, y0: int, width: int, height: int) -> Camera:
         """The same camera for the ``width`` x ``height`` window whose top-left pixel is (x0, y0)
         of this image; negative offsets place this image inside a larger one (the inverse)."""

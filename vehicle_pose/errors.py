@@ -21,6 +21,12 @@ class PhotoTooLargeError(PhotoError):
     code = "photo-too-large"
 
 
+class BlankPhotoError(PhotoError):
+    """The photo is one flat colour: there is nothing to register on."""
+
+    code = "blank-photo"
+
+
 class ModelError(VehiclePoseError):
     """The vehicle model cannot be found, loaded or used."""
 

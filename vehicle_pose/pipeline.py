@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from .camera import Camera
 from .edges import EdgeLoss
-from .errors import CameraError, PoseError
+from .errors import BlankPhotoError, CameraError, PoseError
 from .initialize import (
     Box,
     Candidate,
@@ -49,6 +49,8 @@ __all__ = ["RegistrationOptions", "LevelReport", "RegistrationResult", "register
 
 Progress = Callable[[str, int, float], None]
 _INVALID = 10.0
+# A photo whose values all lie within this many levels is blank (sensor noise of a flat frame).
+_BLANK_RANGE = 2
 # Faces of the mesh whose silhouette seeds GrabCut and is checked against the region.
 _OUTLINE_FACES = 16384
 
@@ -689,6 +691,11 @@ def register(
         raise ValueError("starts and refine must be at least 1")
     if foreground is not None and foreground.shape != (H0, W0):
         raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
+    if int(photo.max()) - int(photo.min()) <= _BLANK_RANGE:
+        raise BlankPhotoError(f"the photo is one flat colour (every value within {_BLANK_RANGE} levels of "
+                              f"{int(photo.min())}): there is nothing to register on")
+    if init_camera is not None:
+        init_camera.for_photo(W0, H0)  # a camera of another picture fails here, not stretched
 
     s = min(1.0, options.max_size / max(W0, H0))
     Wf, Hf = max(8, round(W0 * s)), max(8, round(H0 * s))

@@ -28,7 +28,15 @@ def make_celery(settings: Settings) -> Celery:
         worker_prefetch_multiplier=1,
         task_soft_time_limit=settings.job_soft_time_limit_s,
         task_time_limit=settings.job_hard_time_limit_s,
-        broker_transport_options={"visibility_timeout": settings.visibility_timeout_s},
+        # Socket timeouts: a broker that stops answering (frozen, partitioned) makes a publish
+        # fail within seconds instead of hanging the API's thread forever; they exceed the
+        # redis transport's 1 s blocking pop, so an idle worker's poll is not cut short.
+        broker_transport_options={
+            "visibility_timeout": settings.visibility_timeout_s,
+            "socket_timeout": settings.broker_timeout_s,
+            "socket_connect_timeout": settings.broker_timeout_s,
+        },
+        broker_connection_timeout=settings.broker_timeout_s,
         broker_connection_retry_on_startup=True,
         task_default_queue=QUEUE,
         task_routes={TASK: {"queue": QUEUE}, PREPARE_TASK: {"queue": QUEUE}},

@@ -24,8 +24,9 @@ router = APIRouter(tags=["operations"])
 
 
 @router.get("/healthz")
-def healthz() -> dict[str, str]:
-    """The API process is up."""
+async def healthz() -> dict[str, str]:
+    """The API process is up (answered on the event loop: it needs no worker thread, so it
+    answers even while every thread waits on a dependency)."""
     return {"status": "ok"}
 
 

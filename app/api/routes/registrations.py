@@ -67,6 +67,11 @@ def submit(
     fingerprint = request_hash(data, model_id, init_camera, bbox, options)
     if idempotency_key:
         existing = find_idempotent(session, client, idempotency_key, fingerprint)
+        if existing is not None and existing.never_queued:
+            # The first try answered 503 "try again": this is that retry, so queue the job now.
+            existing.requeue_submission()
+            session.commit()
+            _enqueue(session, existing.id)
         if existing is not None:
             return _accepted(existing)
     checked = check_photo(data, settings)
@@ -80,7 +85,9 @@ def submit(
 def _enqueue(session: Session, job_id: str) -> None:
     """Send the job to the queue; if the broker is down the job is marked failed, never left queued."""
     try:
-        get_celery().send_task(TASK, args=[job_id], task_id=job_id)
+        # No publish retries: the broker's socket timeouts bound the wait, and the client is told
+        # to try again (a retry with the same Idempotency-Key queues this same job).
+        get_celery().send_task(TASK, args=[job_id], task_id=job_id, retry=False)
     except Exception as exc:  # kombu raises many connection error types
         log.error("cannot queue job %s: %s", job_id, exc)
         job = session.get(Registration, job_id)
