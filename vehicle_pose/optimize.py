@@ -16,10 +16,17 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import minimize
 
-with warnings.catch_warnings():
-    # The package warns on import when matplotlib (its plotting) is missing.
-    warnings.simplefilter("ignore")
-    import cma
+
+def _cma():  # type: ignore[no-untyped-def]
+    """The ``cma`` package, imported on first use (0.5 s: it loads scipy.stats), so that a
+    registration that never runs CMA-ES does not pay for it."""
+    with warnings.catch_warnings():
+        # The package warns on import when matplotlib (its plotting) is missing.
+        warnings.simplefilter("ignore")
+        import cma
+
+    return cma
+
 
 __all__ = ["OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "OPTIMIZERS"]
 
@@ -248,7 +255,7 @@ class CMAES:
         # The package seeds NumPy's global generator; the caller's state is put back.
         state = np.random.get_state()
         try:
-            es = cma.CMAEvolutionStrategy(np.zeros(len(x0)), self.sigma, options)
+            es = _cma().CMAEvolutionStrategy(np.zeros(len(x0)), self.sigma, options)
             # Only whole generations, so the budget holds exactly.
             while not es.stop() and counted.count + es.popsize <= max_evaluations:
                 zs = es.ask()
