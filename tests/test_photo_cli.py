@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
-from vehicle_pose.photo import decode_photo
+from vehicle_pose.photo import decode_photo, verify_photo
 from vehicle_pose.pipeline import RegistrationOptions
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,6 +45,37 @@ def test_exif_orientation_is_applied():
 def test_bad_bytes_are_photo_errors(data):
     with pytest.raises(PhotoError):
         decode_photo(data)
+
+
+def _photos() -> list[bytes]:
+    rng = np.random.default_rng(1)
+    rgb = Image.fromarray(rng.integers(0, 255, (120, 200, 3), dtype=np.uint8))
+    turned = Image.new("RGB", (40, 20))
+    exif = turned.getexif()
+    exif[0x0112] = 6
+    return [_encode(rgb, "JPEG", quality=90), _encode(rgb, "PNG"), _encode(rgb.convert("CMYK"), "JPEG"),
+            _encode(rgb, "WEBP"), _encode(turned, "JPEG", exif=exif), _encode(rgb.convert("L"), "TIFF")]
+
+
+@pytest.mark.parametrize("index", range(6))
+def test_verification_sees_the_size_decoding_gives(index):
+    data = _photos()[index]
+    assert verify_photo(data) == decode_photo(data).shape[1::-1]
+
+
+@pytest.mark.parametrize("cut", [0.3, 0.6, 0.9])
+def test_verification_refuses_what_decoding_refuses(cut):
+    big = Image.fromarray(np.random.default_rng(2).integers(0, 255, (600, 800, 3), dtype=np.uint8))
+    for data in (_encode(big, "JPEG", quality=92), _encode(big, "PNG")):
+        short = data[: int(len(data) * cut)]
+        with pytest.raises(PhotoError):
+            decode_photo(short)
+        with pytest.raises(PhotoError):
+            verify_photo(short)
+    with pytest.raises(PhotoTooLargeError):
+        verify_photo(_encode(Image.new("L", (5000, 5000)), "PNG"), max_pixels=1_000_000)
+    with pytest.raises(PhotoError, match="too small"):
+        verify_photo(_encode(Image.new("RGB", (4, 30)), "PNG"))
 
 
 def test_decompression_bomb_is_refused():

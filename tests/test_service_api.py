@@ -137,6 +137,43 @@ def test_hostile_photos_get_problem_details(service, scene, make, status, slug):
         assert_problem(submit(c, make(jpg)), status, slug)
 
 
+def _child(stack, word: bytes) -> int:
+    """Pid of the launcher's child process whose command line holds ``word``."""
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            stat = (proc / "stat").read_text()
+            cmd = (proc / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(stat[stat.rindex(")") + 2 :].split()[1]) == stack.proc.pid and word in cmd:
+            return int(proc.name)
+    raise AssertionError(f"no child of {stack.proc.pid} with {word!r}")
+
+
+def test_small_uploads_of_huge_photos_keep_the_api_small(service):
+    """A 49-megapixel PNG of a few hundred kilobytes, four at once: the API verifies at most two
+    photos at a time and builds no RGB array of them (it took 2.6 GB before)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    big = io.BytesIO()
+    Image.new("RGB", (7000, 7000), (90, 100, 110)).save(big, "PNG")
+    data = big.getvalue()
+    assert len(data) < 400_000
+
+    def one() -> int:
+        with service.client() as c:
+            return submit(c, data, options='{"starts": 1, "refine": 1, "max_evaluations": 20}').status_code
+
+    with ThreadPoolExecutor(4) as pool:
+        codes = list(pool.map(lambda _: one(), range(4)))
+    assert codes == [202] * 4
+    status = (Path("/proc") / str(_child(service, b"uvicorn")) / "status").read_text()
+    peak_kb = int(next(line for line in status.splitlines() if line.startswith("VmHWM")).split()[1])
+    assert peak_kb < 1_200_000, f"API peak {peak_kb / 1e6:.2f} GB"
+
+
 def test_oversize_upload_is_refused_while_streaming(service):
     limit = 25 * 1024 * 1024
     chunk = b"\xff\xd8\xff" + b"\x00" * (1024 * 1024 - 3)

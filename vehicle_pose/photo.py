@@ -55,6 +55,37 @@ def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np
     return np.ascontiguousarray(rgb)
 
 
+def verify_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> tuple[int, int]:
+    """Width and height (EXIF orientation applied) of a photo :func:`decode_photo` would accept,
+    found without building its RGB array: a JPEG is decoded at an eighth of its size (every
+    byte of the stream is still read, so a truncated or damaged one fails), other formats once
+    in their own mode. Raises what :func:`decode_photo` raises."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img = Image.open(io.BytesIO(data))
+            width, height = img.width, img.height
+            if width * height > max_pixels:
+                raise PhotoTooLargeError(f"photo has {width}x{height} pixels, more than {max_pixels}")
+            if img.format == "JPEG":
+                img.draft(img.mode, (max(1, width // 8), max(1, height // 8)))
+            img.load()
+            orientation = img.getexif().get(0x0112, 1)
+    except PhotoError:
+        raise
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+        raise PhotoTooLargeError(f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
+    except UnidentifiedImageError as exc:
+        raise PhotoError(f"not a readable image: {exc}") from None
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise PhotoError(f"image data is damaged or truncated: {exc}") from None
+    if orientation in (5, 6, 7, 8):  # turned by a quarter: the photo's sides swap
+        width, height = height, width
+    if width < 8 or height < 8:
+        raise PhotoError(f"photo of size {width}x{height} is too small")
+    return width, height
+
+
 def load_photo(path: str | Path, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
     """Read a photo file into an (H, W, 3) uint8 RGB array; PhotoError if it cannot be used."""
     p = Path(path)

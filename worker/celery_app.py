@@ -26,6 +26,9 @@ def make_celery(settings: Settings) -> Celery:
         task_reject_on_worker_lost=True,
         task_acks_on_failure_or_timeout=True,
         worker_prefetch_multiplier=1,
+        # A pool process that grew past this (a huge photo's buffers stay in the allocator) is
+        # replaced after its job; the job itself is not interrupted.
+        worker_max_memory_per_child=settings.worker_max_memory_mb * 1024,
         task_soft_time_limit=settings.job_soft_time_limit_s,
         task_time_limit=settings.job_hard_time_limit_s,
         # Socket timeouts: a broker that stops answering (frozen, partitioned) makes a publish

@@ -42,6 +42,7 @@ class Settings(BaseSettings):
     progress_interval_s: float = Field(default=0.5, ge=0.0)
     warm_timeout_s: float = Field(default=900.0, gt=0.0)
     broker_timeout_s: float = Field(default=3.0, gt=1.0)
+    worker_max_memory_mb: int = Field(default=1500, gt=100)
     bootstrap_admin_key: SecretStr | None = None
     bootstrap_client_key: SecretStr | None = None
 
