@@ -18,11 +18,15 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from .core.config import Settings
 
 REDIS_CANDIDATES = ("/usr/bin/redis-server", "/usr/sbin/redis-server", "/usr/local/bin/redis-server")
+RESTART_MAX_S = 30.0
+"""Longest wait before a process that keeps dying is started again."""
 
 
 def _free_port() -> int:
@@ -44,7 +48,9 @@ def _wait_port(port: int, proc: subprocess.Popen[bytes], what: str, timeout: flo
     raise SystemExit(f"vehicle-pose-service: {what} did not listen on port {port} within {timeout:.0f} s")
 
 
-def _start_redis(data_dir: Path) -> tuple[subprocess.Popen[bytes], str]:
+def _start_redis(data_dir: Path, port: int | None = None, password: str | None = None) -> tuple[subprocess.Popen[bytes], str]:
+    """Debian's redis-server on ``port`` (a free one by default) with ``password`` (a new one
+    by default); a restart passes both again, so every client's URL stays valid."""
     binary = shutil.which("redis-server") or next((p for p in REDIS_CANDIDATES if Path(p).exists()), None)
     if binary is None:
         raise SystemExit(
@@ -53,10 +59,10 @@ def _start_redis(data_dir: Path) -> tuple[subprocess.Popen[bytes], str]:
         )
     folder = data_dir / "redis"
     folder.mkdir(parents=True, exist_ok=True)
-    port = _free_port()
+    port = port or _free_port()
     # A password of this start: another local user cannot reach the queue. It goes in on stdin
     # (redis-server's "-" config file), not in the arguments that every user's ps shows.
-    password = secrets.token_urlsafe(24)
+    password = password or secrets.token_urlsafe(24)
     proc = subprocess.Popen(
         [binary, "-", "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder.resolve()),
          "--appendonly", "yes", "--save", "", "--daemonize", "no", "--loglevel", "warning"],
@@ -68,6 +74,40 @@ def _start_redis(data_dir: Path) -> tuple[subprocess.Popen[bytes], str]:
     proc.stdin.close()
     _wait_port(port, proc, "redis-server")
     return proc, f"redis://:{password}@127.0.0.1:{port}/0"
+
+
+@dataclass
+class _Child:
+    """One supervised process: how to start it, and its restart history."""
+
+    name: str
+    start: Callable[[], subprocess.Popen[bytes]]
+    proc: subprocess.Popen[bytes] | None = None
+    started: float = 0.0
+    failures: int = 0
+    due: float = 0.0
+
+    def run(self) -> None:
+        self.proc = self.start()
+        self.started = time.monotonic()
+
+    def check(self, now: float) -> None:
+        """Restart the process when it died, after a delay that doubles with each quick death
+        (0.5 s up to RESTART_MAX_S; a process that ran a minute starts the count again)."""
+        if self.proc is not None and self.proc.poll() is not None:
+            code = self.proc.returncode
+            self.failures = 0 if now - self.started > 60.0 else self.failures + 1
+            delay = min(RESTART_MAX_S, 0.5 * 2.0 ** self.failures)
+            print(f"vehicle-pose-service: {self.name} exited with {code}; restarting in {delay:.1f} s",
+                  file=sys.stderr, flush=True)
+            self.proc, self.due = None, now + delay
+        if self.proc is None and now >= self.due:
+            try:
+                self.run()
+            except (OSError, SystemExit) as exc:
+                self.failures += 1
+                self.due = now + min(RESTART_MAX_S, 0.5 * 2.0 ** self.failures)
+                print(f"vehicle-pose-service: cannot restart {self.name}: {exc}", file=sys.stderr, flush=True)
 
 
 def _bootstrap_keys(settings: Settings, *, keep_file: bool) -> dict[str, str]:
@@ -101,23 +141,69 @@ def _bootstrap_keys(settings: Settings, *, keep_file: bool) -> dict[str, str]:
     return keys
 
 
-def _terminate(procs: list[subprocess.Popen[bytes]]) -> None:
-    for p in reversed(procs):
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + 20
-    for p in reversed(procs):
+def _stop(child: _Child | None, sig: signal.Signals, wait: float) -> None:
+    p = child.proc if child is not None else None
+    if p is None or p.poll() is not None:
+        return
+    p.send_signal(sig)
+    try:
+        p.wait(timeout=wait)
+    except subprocess.TimeoutExpired:
+        print(f"vehicle-pose-service: {child.name} still running after {wait:.0f} s; killing it",  # type: ignore[union-attr]
+              file=sys.stderr, flush=True)
+        p.kill()
+        p.wait()
+
+
+def _shutdown(api: _Child | None, workers: _Child | None, redis: _Child | None, drain: float) -> None:
+    """Stop in order: the API stops accepting and finishes its requests; the workers finish
+    their jobs for up to ``drain`` seconds, then stop at once (a cold shutdown hands the jobs
+    still running back to the queue, and their records say ``queued``); Redis last, so that
+    the workers can hand their jobs back."""
+    _stop(api, signal.SIGTERM, 20.0)
+    if workers is not None and workers.proc is not None and workers.proc.poll() is None:
+        workers.proc.send_signal(signal.SIGTERM)  # warm shutdown: no new job, running ones finish
         try:
-            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            workers.proc.wait(timeout=drain)
         except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+            print(f"vehicle-pose-service: jobs still running after {drain:.0f} s; handing them back to the queue",
+                  file=sys.stderr, flush=True)
+            _stop(workers, signal.SIGQUIT, 30.0)
+        if workers.proc.poll() is not None:
+            _hand_back()
+    _stop(redis, signal.SIGTERM, 20.0)
+
+
+def _hand_back() -> None:
+    """After this launcher's workers are gone, no job of this machine is running: a job whose
+    record still says so was cut off by the stop, and its message is back in the queue
+    (acks_late), so its record says ``queued`` until a worker takes it again."""
+    from sqlalchemy import update
+
+    from .core.db import session_scope
+    from .models import JobStatus, Registration
+
+    try:
+        with session_scope() as s:
+            done = s.execute(
+                update(Registration)
+                .where(Registration.status == JobStatus.running.value,
+                       Registration.worker.like(f"{socket.gethostname()}:%"))
+                .values(status=JobStatus.queued.value, stage="retrying")
+            )
+        if done.rowcount:  # type: ignore[attr-defined]
+            print(f"vehicle-pose-service: {done.rowcount} running job(s) handed back to the queue",  # type: ignore[attr-defined]
+                  file=sys.stderr, flush=True)
+    except Exception as exc:  # the database may be what failed
+        print(f"vehicle-pose-service: cannot mark the cut-off jobs queued: {exc}", file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
+    """Start Redis (unless ``VP_BROKER_URL`` names one), migrate, bootstrap keys, then supervise
+    the workers and the API: whichever dies is restarted with backoff while the others run on
+    (the API answers 503 while the broker is away). SIGTERM or Ctrl-C stops them in order."""
     data_dir = Path(args.data_dir).resolve()
     env = dict(os.environ, VP_DATA_DIR=str(data_dir))
-    procs: list[subprocess.Popen[bytes]] = []
     stopping = False
 
     def stop(signum: int, _frame: object) -> None:
@@ -126,10 +212,16 @@ def run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
+    redis: _Child | None = None
+    workers: _Child | None = None
+    api: _Child | None = None
     try:
         if "VP_BROKER_URL" not in os.environ:
-            redis_proc, env["VP_BROKER_URL"] = _start_redis(data_dir)
-            procs.append(redis_proc)
+            proc, url = _start_redis(data_dir)
+            env["VP_BROKER_URL"] = url
+            port = int(url.rsplit(":", 1)[1].split("/")[0])
+            password = url.split("//:", 1)[1].split("@", 1)[0]
+            redis = _Child("redis-server", lambda: _start_redis(data_dir, port, password)[0], proc, time.monotonic())
         os.environ.update(env)  # this process migrates and bootstraps with the same settings
         from .core.config import get_settings
         from .core.migrate import upgrade
@@ -138,22 +230,21 @@ def run(args: argparse.Namespace) -> int:
         settings = get_settings()
         upgrade()
         keys = _bootstrap_keys(settings, keep_file=True)
-        procs.append(
-            subprocess.Popen(
-                [sys.executable, "-m", "celery", "-A", "worker.celery_app", "--quiet", "worker", "--loglevel", args.log_level,
-                 "--pool", "prefork", "--concurrency", str(args.workers), "-Q", "registrations",
-                 "--hostname", f"worker-{os.getpid()}@%h", "--without-mingle", "--without-gossip"],
-                env=env,
-            )
-        )
-        procs.append(
-            subprocess.Popen(
-                [sys.executable, "-m", "uvicorn", "app.main:app", "--host", args.host, "--port", str(args.port),
-                 "--log-level", args.log_level.lower(), "--no-access-log"],
-                env=env,
-            )
-        )
-        _wait_port(args.port, procs[-1], "the API")
+        workers = _Child("the workers", lambda: subprocess.Popen(
+            [sys.executable, "-m", "celery", "-A", "worker.celery_app", "--quiet", "worker", "--loglevel", args.log_level,
+             "--pool", "prefork", "--concurrency", str(args.workers), "-Q", "registrations",
+             "--hostname", f"worker-{os.getpid()}@%h", "--without-mingle", "--without-gossip"],
+            env=env,
+        ))
+        api = _Child("the API", lambda: subprocess.Popen(
+            [sys.executable, "-m", "uvicorn", "app.main:app", "--host", args.host, "--port", str(args.port),
+             "--log-level", args.log_level.lower(), "--no-access-log"],
+            env=env,
+        ))
+        workers.run()
+        api.run()
+        assert api.proc is not None
+        _wait_port(args.port, api.proc, "the API")
         url = f"http://{args.host}:{args.port}"
         print(f"vehicle-pose service on {url}  (admin page {url}/admin, API docs {url}/docs)", flush=True)
         broker = re.sub(r"//:[^@]*@", "//:***@", env["VP_BROKER_URL"])
@@ -162,14 +253,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"API key ({name}): {key}", flush=True)
         print(f"keys are kept in {data_dir / 'credentials.json'}; stop with Ctrl-C", flush=True)
         while not stopping:
-            dead = [p for p in procs if p.poll() is not None]
-            if dead:
-                print(f"vehicle-pose-service: {dead[0].args[0]} exited with {dead[0].returncode}; stopping", file=sys.stderr)
-                return 1
-            time.sleep(0.5)
+            now = time.monotonic()
+            for child in (redis, workers, api):
+                if child is not None:
+                    child.check(now)
+            time.sleep(0.25)
         return 0
     finally:
-        _terminate(procs)
+        _shutdown(api, workers, redis, args.drain_seconds)
 
 
 def _use_data_dir(args: argparse.Namespace) -> None:
@@ -221,6 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--port", type=int, default=8000)
     r.add_argument("--workers", type=int, default=2, help="worker processes, each with one EGL context")
     r.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    r.add_argument("--drain-seconds", type=float, default=60.0,
+                   help="on stop, how long running jobs may finish before they are handed back to the queue")
     k = sub.add_parser("create-key", help="add an API client and print its key")
     k.add_argument("name")
     k.add_argument("--admin", action="store_true")

@@ -46,23 +46,23 @@ class Stack:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
-                self.proc.wait(timeout=40)
+                self.proc.wait(timeout=90)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
 
 
-def start_stack(data_dir: Path, *, workers: int = 2, extra_env: dict[str, str] | None = None) -> Stack:
+def start_stack(data_dir: Path, *, workers: int = 2, extra_env: dict[str, str] | None = None, drain: float = 5.0) -> Stack:
     port = free_port()
     log = data_dir / "service.log"
     env = {k: v for k, v in os.environ.items() if not k.startswith("VP_")}
     if "VEHICLE_POSE_CACHE_DIR" in os.environ:  # every service of a test session prepares the models once
         env["VP_PREPARED_DIR"] = str(Path(os.environ["VEHICLE_POSE_CACHE_DIR"]) / "service")
     env.update(extra_env or {})
-    with log.open("wb") as out:
+    with log.open("ab") as out:
         proc = subprocess.Popen(
             [str(SERVICE), "run", "--port", str(port), "--workers", str(workers), "--data-dir", str(data_dir),
-             "--log-level", "INFO"],
+             "--log-level", "INFO", "--drain-seconds", str(drain)],
             stdout=out,
             stderr=subprocess.STDOUT,
             env=env,
