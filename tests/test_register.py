@@ -101,7 +101,8 @@ def test_bad_hints_are_clear_errors(sedan, renderer):
         register(photo, sedan, init_camera=truth, options=RegistrationOptions(loss="nope"), renderer=renderer)
     with pytest.raises(CameraError, match="aspect ratio"):
         register(photo[:, :360], sedan, init_camera=truth, renderer=renderer)
-    for flat in (np.zeros_like(photo), np.full_like(photo, 128) + (np.arange(photo.size) % 3).reshape(photo.shape).astype(np.uint8)):
+    noisy = np.full_like(photo, 128) + (np.arange(photo.size) % 3).reshape(photo.shape).astype(np.uint8)
+    for flat in (np.zeros_like(photo), noisy, np.broadcast_to(np.array([90, 100, 110], np.uint8), photo.shape).copy()):
         with pytest.raises(BlankPhotoError, match="nothing to register"):
             register(flat, sedan, init_camera=truth, renderer=renderer)
 

@@ -162,16 +162,20 @@ def test_small_uploads_of_huge_photos_keep_the_api_small(service):
     data = big.getvalue()
     assert len(data) < 400_000
 
-    def one() -> int:
+    def one():
         with service.client() as c:
-            return submit(c, data, options='{"starts": 1, "refine": 1, "max_evaluations": 20}').status_code
+            return submit(c, data, options='{"starts": 1, "refine": 1, "max_evaluations": 20}')
 
     with ThreadPoolExecutor(4) as pool:
-        codes = list(pool.map(lambda _: one(), range(4)))
-    assert codes == [202] * 4
+        accepted = list(pool.map(lambda _: one(), range(4)))
+    assert [r.status_code for r in accepted] == [202] * 4
     status = (Path("/proc") / str(_child(service, b"uvicorn")) / "status").read_text()
     peak_kb = int(next(line for line in status.splitlines() if line.startswith("VmHWM")).split()[1])
     assert peak_kb < 1_200_000, f"API peak {peak_kb / 1e6:.2f} GB"
+    with service.client() as c:  # one flat colour: the workers fail them at once, with the reason
+        for r in accepted:
+            body = wait_for(c, r.json()["id"], timeout=60)
+            assert body["status"] == "failed" and body["error"]["type"] == "/problems/blank-photo", body
 
 
 def test_oversize_upload_is_refused_while_streaming(service):

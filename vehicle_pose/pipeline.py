@@ -691,9 +691,11 @@ def register(
         raise ValueError("starts and refine must be at least 1")
     if foreground is not None and foreground.shape != (H0, W0):
         raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
-    if int(photo.max()) - int(photo.min()) <= _BLANK_RANGE:
-        raise BlankPhotoError(f"the photo is one flat colour (every value within {_BLANK_RANGE} levels of "
-                              f"{int(photo.min())}): there is nothing to register on")
+    pixels = photo.reshape(-1, 3)
+    low, high = pixels.min(axis=0), pixels.max(axis=0)
+    if int((high.astype(np.int16) - low).max()) <= _BLANK_RANGE:
+        raise BlankPhotoError(f"the photo is one flat colour (each channel within {_BLANK_RANGE} levels of "
+                              f"RGB {tuple(int(v) for v in low)}): there is nothing to register on")
     if init_camera is not None:
         init_camera.for_photo(W0, H0)  # a camera of another picture fails here, not stretched
 
