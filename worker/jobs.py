@@ -21,7 +21,7 @@ from sqlalchemy.exc import OperationalError
 from app.core.config import Settings, get_settings
 from app.core.db import session_scope
 from app.core.library import get_library
-from app.core.storage import ObjectMissing, Storage, get_storage
+from app.core.storage import ObjectMissing, Storage, StorageUnavailable, get_storage
 from app.models import JobStatus, Registration, utcnow
 from vehicle_pose import (
     Camera,
@@ -179,7 +179,9 @@ def run_job(
         log.warning("job %s attempt %d: transient error: %s", job_id, job.attempts, exc)
         if job.attempts < settings.max_attempts:
             raise Retry(str(exc)) from exc
-        fail_job(job_id, "internal-error", f"gave up after {job.attempts} attempts: {exc}")
+        kind = ("storage-unavailable" if isinstance(exc, StorageUnavailable)
+                else "database-unavailable" if isinstance(exc, OperationalError) else "internal-error")
+        fail_job(job_id, kind, f"gave up after {job.attempts} attempts: {exc}")
     except Exception as exc:
         log.exception("job %s attempt %d failed", job_id, job.attempts)
         fail_job(job_id, "internal-error", f"{type(exc).__name__}: {exc}")

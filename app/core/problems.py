@@ -60,6 +60,10 @@ _SLUGS = {
 
 
 def install(app: FastAPI) -> None:
+    from sqlalchemy.exc import OperationalError
+
+    from .storage import StorageUnavailable
+
     """Answer every error of ``app`` as problem+json."""
 
     @app.exception_handler(Problem)
@@ -76,6 +80,18 @@ def install(app: FastAPI) -> None:
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         slug = _SLUGS.get(exc.status_code, "http-error")
         return problem_response(request, exc.status_code, slug, str(exc.detail), getattr(exc, "headers", None))
+
+    @app.exception_handler(StorageUnavailable)
+    async def _storage(request: Request, exc: StorageUnavailable) -> JSONResponse:
+        log.warning("storage unavailable on %s %s: %s", request.method, request.url.path, exc)
+        return problem_response(request, 503, "storage-unavailable", "the photo store cannot be reached; try again",
+                                {"Retry-After": "5"})
+
+    @app.exception_handler(OperationalError)
+    async def _database(request: Request, exc: OperationalError) -> JSONResponse:
+        log.warning("database unavailable on %s %s: %s", request.method, request.url.path, exc)
+        return problem_response(request, 503, "database-unavailable", "the database cannot be reached; try again",
+                                {"Retry-After": "5"})
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

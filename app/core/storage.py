@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Protocol
@@ -16,6 +18,11 @@ from .config import Settings, get_settings
 
 class ObjectMissing(KeyError):
     """No object is stored under this key."""
+
+
+class StorageUnavailable(OSError):
+    """The store could not be reached (connection refused, reset, timed out): a transient
+    failure, retried like the other OSErrors of a job."""
 
 
 class Storage(Protocol):
@@ -90,20 +97,34 @@ class S3Storage:
     def _key(self, key: str) -> str:
         return f"{self.prefix}/{_check_key(key)}" if self.prefix else _check_key(key)
 
+    @contextmanager
+    def _reachable(self) -> Iterator[None]:
+        from botocore.exceptions import ConnectionError as BotoConnectionError
+        from botocore.exceptions import HTTPClientError
+
+        try:
+            yield
+        except (BotoConnectionError, HTTPClientError) as exc:
+            raise StorageUnavailable(f"the object store cannot be reached: {exc}") from None
+
     def put(self, key: str, data: bytes, content_type: str) -> None:
-        self._client.put_object(Bucket=self.bucket, Key=self._key(key), Body=data, ContentType=content_type)
+        with self._reachable():
+            self._client.put_object(Bucket=self.bucket, Key=self._key(key), Body=data, ContentType=content_type)
 
     def get(self, key: str) -> bytes:
-        try:
-            return self._client.get_object(Bucket=self.bucket, Key=self._key(key))["Body"].read()
-        except self._client.exceptions.NoSuchKey:
-            raise ObjectMissing(key) from None
+        with self._reachable():
+            try:
+                return self._client.get_object(Bucket=self.bucket, Key=self._key(key))["Body"].read()
+            except self._client.exceptions.NoSuchKey:
+                raise ObjectMissing(key) from None
 
     def delete(self, key: str) -> None:
-        self._client.delete_object(Bucket=self.bucket, Key=self._key(key))
+        with self._reachable():
+            self._client.delete_object(Bucket=self.bucket, Key=self._key(key))
 
     def ping(self) -> None:
-        self._client.head_bucket(Bucket=self.bucket)
+        with self._reachable():
+            self._client.head_bucket(Bucket=self.bucket)
 
 
 def make_storage(settings: Settings) -> Storage:
