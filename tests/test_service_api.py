@@ -86,6 +86,9 @@ def test_worker_killed_mid_job_is_redelivered(service, scene, sedan):
         assert running["status"] == "running", "the job finished before it could be killed"
         pid = _worker_pid(service, job_id)
         os.kill(pid, signal.SIGKILL)
+        # While it waits to be sent again, the record says so (not a frozen "running").
+        waiting = wait_for(c, job_id, until=("queued", "succeeded", "failed"), timeout=30)
+        assert waiting["status"] == "queued" and waiting["attempts"] == 1, waiting
         body = wait_for(c, job_id, timeout=180)
     assert body["status"] == "succeeded", body
     assert body["attempts"] == 2

@@ -55,7 +55,25 @@ def prepare_model(model_id: str) -> None:
 
 
 class RegistrationTask(Task):
-    """Records in the job how a run ended that never reached the job runner's own handling."""
+    """Records in the job how a run ended that never reached the job runner's own handling.
+
+    When the pool process running a job dies (SIGKILL, out of memory), the worker's main process
+    sends the job again after ``RETRY_DELAY_S`` (``retry_on_worker_lost``) and :meth:`on_retry`
+    marks its record ``queued`` (stage ``retrying``) meanwhile, instead of leaving it ``running``
+    with frozen progress until a process takes it.
+    """
+
+    retry_on_worker_lost = True
+    default_retry_delay = RETRY_DELAY_S
+
+    def on_retry(self, exc: BaseException, task_id: str, args: Any, kwargs: Any, einfo: Any) -> None:
+        job_id = args[0] if args else kwargs.get("job_id")
+        if job_id is None:
+            return
+        try:
+            requeue(job_id)
+        except Exception:  # the database may be down: the retry still happens
+            log.warning("cannot mark job %s for retry", job_id)
 
     def on_failure(self, exc: BaseException, task_id: str, args: Any, kwargs: Any, einfo: Any) -> None:
         # Called in the worker's main process after a hard time limit killed the pool process,
