@@ -21,6 +21,24 @@ from PIL import Image
 SERVICE = Path(sys.executable).parent / "vehicle-pose-service"
 
 
+def children(pid: int) -> list[tuple[int, str, bytes]]:
+    """(pid, name, command line) of every live process whose parent is ``pid`` (read from /proc;
+    a zombie, which has no command line, is left out)."""
+    out = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            stat = (proc / "stat").read_text()
+            cmdline = (proc / "cmdline").read_bytes()
+        except OSError:
+            continue
+        name, rest = stat[stat.index("(") + 1 : stat.rindex(")")], stat[stat.rindex(")") + 2 :].split()
+        if int(rest[1]) == pid and cmdline:
+            out.append((int(proc.name), name, cmdline))
+    return out
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -18,7 +18,7 @@ import pytest
 import trimesh
 from conftest import projection_error, view
 from PIL import Image
-from service_stack import SERVICE, encode, wait_for
+from service_stack import SERVICE, children, encode, wait_for
 from test_register import perturbed
 
 from vehicle_pose.camera import Camera
@@ -142,17 +142,9 @@ def test_hostile_photos_get_problem_details(service, scene, make, status, slug):
 
 def _child(stack, word: bytes) -> int:
     """Pid of the launcher's child process whose command line holds ``word``."""
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            stat = (proc / "stat").read_text()
-            cmd = (proc / "cmdline").read_bytes()
-        except OSError:
-            continue
-        if int(stat[stat.rindex(")") + 2 :].split()[1]) == stack.proc.pid and word in cmd:
-            return int(proc.name)
-    raise AssertionError(f"no child of {stack.proc.pid} with {word!r}")
+    found = [pid for pid, _, cmdline in children(stack.proc.pid) if word in cmdline]
+    assert found, f"no child of {stack.proc.pid} with {word!r}"
+    return found[0]
 
 
 def test_small_uploads_of_huge_photos_keep_the_api_small(service):
@@ -457,17 +449,12 @@ def test_workers_warm_the_library_and_prepare_uploads(service, sedan, tmp_path):
 def _redis(stack) -> tuple[int, int]:
     """Pid and port of the embedded redis-server that the stack's launcher started (its child
     named redis-server; Redis shows ``host:port`` as its process title)."""
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            stat = (proc / "stat").read_text()
-            title = (proc / "cmdline").read_bytes().decode(errors="replace")
-        except OSError:
-            continue
-        comm, rest = stat[stat.index("(") + 1 : stat.rindex(")")], stat[stat.rindex(")") + 2 :].split()
-        if comm == "redis-server" and int(rest[1]) == stack.proc.pid:
-            return int(proc.name), int(title.split(":")[1].split()[0].strip("\0"))
+    for pid, name, cmdline in children(stack.proc.pid):
+        if name == "redis-server":
+            args = cmdline.split(b"\0")
+            if b"--port" in args:  # not yet retitled: its arguments
+                return pid, int(args[args.index(b"--port") + 1])
+            return pid, int(cmdline.decode(errors="replace").split(":")[1].split()[0].strip("\0"))
     raise AssertionError(f"no redis-server child of the launcher {stack.proc.pid}")
 
 

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import httpx
-from service_stack import free_port
+from service_stack import children, free_port
 
 SERVICE_ROOT = Path(__file__).resolve().parents[1]
 
@@ -189,17 +189,7 @@ class Topology:
 
     def pool_children(self) -> list[int]:
         """Pids of the workers' pool processes (the ones running jobs)."""
-        parents = {p.pid for p in self.workers}
-        out = []
-        for proc in Path("/proc").iterdir():
-            if proc.name.isdigit():
-                try:
-                    stat = (proc / "stat").read_text()
-                except OSError:
-                    continue
-                if int(stat[stat.rindex(")") + 2 :].split()[1]) in parents:
-                    out.append(int(proc.name))
-        return out
+        return [pid for worker in self.workers for pid, _, _ in children(worker.pid)]
 
     def client(self) -> httpx.Client:
         return httpx.Client(base_url=f"http://127.0.0.1:{self.api_port}",
