@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import io
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +14,30 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from .errors import PhotoError, PhotoTooLargeError
 
-__all__ = ["load_photo", "decode_photo", "is_gray", "MAX_PIXELS"]
+__all__ = ["load_photo", "decode_photo", "verify_photo", "is_gray", "MAX_PIXELS"]
 
 MAX_PIXELS = 50_000_000
+
+
+@contextmanager
+def _opened(data: bytes, max_pixels: int) -> Iterator[Image.Image]:
+    """The opened image, its size checked from the header; everything PIL raises while the
+    caller decodes it is a PhotoError (PhotoTooLargeError for a decompression bomb)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img = Image.open(io.BytesIO(data))
+            if img.width * img.height > max_pixels:
+                raise PhotoTooLargeError(f"photo has {img.width}x{img.height} pixels, more than {max_pixels}")
+            yield img
+    except PhotoError:
+        raise
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+        raise PhotoTooLargeError(f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
+    except UnidentifiedImageError as exc:
+        raise PhotoError(f"not a readable image: {exc}") from None
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise PhotoError(f"image data is damaged or truncated: {exc}") from None
 
 
 def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
@@ -25,21 +48,8 @@ def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np
     image, and PhotoTooLargeError (a PhotoError) for one with more than ``max_pixels`` pixels;
     the size is checked from the header, before anything is decoded.
     """
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", Image.DecompressionBombWarning)
-            img = Image.open(io.BytesIO(data))
-            if img.width * img.height > max_pixels:
-                raise PhotoTooLargeError(f"photo has {img.width}x{img.height} pixels, more than {max_pixels}")
-            img.load()
-    except PhotoError:
-        raise
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
-        raise PhotoTooLargeError(f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
-    except UnidentifiedImageError as exc:
-        raise PhotoError(f"not a readable image: {exc}") from None
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise PhotoError(f"image data is damaged or truncated: {exc}") from None
+    with _opened(data, max_pixels) as img:
+        img.load()
     img = ImageOps.exif_transpose(img)
     if img.mode in ("I;16", "I;16B", "I;16L", "I"):
         arr = np.asarray(img, dtype=np.float64)
@@ -60,25 +70,12 @@ def verify_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> tuple[int, int
     found without building its RGB array: a JPEG is decoded at an eighth of its size (every
     byte of the stream is still read, so a truncated or damaged one fails), other formats once
     in their own mode. Raises what :func:`decode_photo` raises."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", Image.DecompressionBombWarning)
-            img = Image.open(io.BytesIO(data))
-            width, height = img.width, img.height
-            if width * height > max_pixels:
-                raise PhotoTooLargeError(f"photo has {width}x{height} pixels, more than {max_pixels}")
-            if img.format == "JPEG":
-                img.draft(img.mode, (max(1, width // 8), max(1, height // 8)))
-            img.load()
-            orientation = img.getexif().get(0x0112, 1)
-    except PhotoError:
-        raise
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
-        raise PhotoTooLargeError(f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
-    except UnidentifiedImageError as exc:
-        raise PhotoError(f"not a readable image: {exc}") from None
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise PhotoError(f"image data is damaged or truncated: {exc}") from None
+    with _opened(data, max_pixels) as img:
+        width, height = img.width, img.height
+        if img.format == "JPEG":
+            img.draft(img.mode, (max(1, width // 8), max(1, height // 8)))
+        img.load()
+        orientation = img.getexif().get(0x0112, 1)
     if orientation in (5, 6, 7, 8):  # turned by a quarter: the photo's sides swap
         width, height = height, width
     if width < 8 or height < 8:

@@ -24,7 +24,6 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from importlib import metadata as _metadata
@@ -35,6 +34,7 @@ import numpy as np
 import numpy.typing as npt
 import xxhash
 
+from .files import write_atomic
 from .mesh import Mesh, Part
 
 if TYPE_CHECKING:
@@ -48,7 +48,6 @@ PREPARATION = 1
 """Version of what an entry holds; raise it whenever preparation gives different arrays."""
 
 _LIBRARIES = ("numpy", "trimesh", "fast-simplification")
-_EXTERIOR_ARGS = (64, 512, 2.0, 0.05)  # Renderer.exterior's defaults, part of an exterior's key
 
 
 def default_cache_dir() -> Path:
@@ -146,7 +145,7 @@ class _Entry:
         return self._manifest
 
     def _write_manifest(self, data: dict[str, Any]) -> None:
-        self._atomic(self.folder / "manifest.json", (json.dumps(data, indent=1) + "\n").encode())
+        write_atomic(self.folder / "manifest.json", (json.dumps(data, indent=1) + "\n").encode())
         self._manifest = data
 
     def update(self, change: Callable[[dict[str, Any]], None]) -> None:
@@ -156,18 +155,6 @@ class _Entry:
             change(data)
             self._write_manifest(data)
 
-    def _atomic(self, path: Path, payload: bytes) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(payload)
-            os.replace(tmp, path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
-
     def put_array(self, a: npt.NDArray[Any]) -> str:
         digest = _array_hash(a)
         path = self.folder / "arrays" / f"{digest}.npy"
@@ -176,7 +163,7 @@ class _Entry:
 
             buf = io.BytesIO()
             np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
-            self._atomic(path, buf.getvalue())
+            write_atomic(path, buf.getvalue())
         self._arrays.setdefault(digest, a)
         return digest
 
@@ -356,15 +343,6 @@ class Levels:
             log.warning("cannot add to prepared model %s: %s", entry.folder, exc)
             self.entry = None
 
-    def has_lod(self, max_faces: int) -> bool:
-        """Whether the level for ``max_faces`` is in memory or in the entry."""
-        if max_faces >= self.mesh.n_faces or max_faces in self._lods:
-            return True
-        try:
-            return self.entry is not None and str(max_faces) in self.entry.manifest(reload=True).get("lods", {})
-        except CorruptEntry:
-            return False
-
     def lod(self, max_faces: int, make: Callable[[int], Mesh]) -> Mesh:
         """The level for ``max_faces``: from memory, the entry, or ``make``."""
         if self.mesh.n_faces <= max_faces:
@@ -382,7 +360,8 @@ class Levels:
     def _exterior_key(self, max_faces: int, renderer: Renderer) -> str:
         gl = renderer.ctx.info.get("GL_RENDERER", "?")
         level = "full" if max_faces >= self.mesh.n_faces else str(max_faces)
-        return f"{level}|{gl}|{_EXTERIOR_ARGS}"
+        args = tuple(type(renderer).exterior.__kwdefaults__.values())  # the pass's own settings
+        return f"{level}|{gl}|{args}"
 
     def exterior(self, max_faces: int, mesh: Mesh, renderer: Renderer) -> Mesh:
         """The exterior pass of ``mesh`` (the level for ``max_faces``) on this renderer's GL
