@@ -58,7 +58,8 @@ def run_one(model, renderer, photo, truth, start, options, **kw) -> dict:
     pts = model.mesh.vertices
     res = register(photo, model, init_camera=start, options=options, renderer=renderer, **kw)
     return {"error_px": projection_error(pts, res.camera, truth), "start_error_px": projection_error(pts, start, truth),
-            "seconds": res.seconds, "evaluations": res.evaluations, "loss": res.loss}
+            "seconds": res.seconds, "evaluations": res.evaluations, "loss": res.loss,
+            "camera": res.camera.to_dict()}
 
 
 def sweep(n: int) -> dict:
