@@ -20,8 +20,8 @@ COPY vehicle_pose ./vehicle_pose
 COPY app ./app
 COPY worker ./worker
 RUN pip install '.[service,postgres,s3]' \
- && python -c "from vehicle_pose.moments import warm_up; warm_up()" \
- && python -c "import numpy as np; from vehicle_pose.mesh import _oriented; _oriented(np.array([[0, 1, 2], [0, 1, 3]]))" \
+ && python -c "from vehicle_pose.loss.moments import warm_up; warm_up()" \
+ && python -c "import numpy as np; from vehicle_pose.model.loading import oriented_faces; oriented_faces(np.array([[0, 1, 2], [0, 1, 3]]))" \
  && mkdir -p /prepared && chown vp /prepared
 COPY vehicle_models ./vehicle_models
 

@@ -22,7 +22,7 @@ from vehicle_pose import (
     PhotoTooLargeError,
 )
 from vehicle_pose.errors import UnknownModelError
-from vehicle_pose.initialize import parse_bbox
+from vehicle_pose.search.views import parse_bbox
 from vehicle_pose.photo import verify_photo
 
 from .core.config import Settings

@@ -7,9 +7,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from vehicle_pose.losses import LOSSES
-from vehicle_pose.optimize import OPTIMIZERS
-from vehicle_pose.parametrize import PARAMETRIZATIONS
+from vehicle_pose.loss.registry import LOSSES
+from vehicle_pose.search.optimize import OPTIMIZERS
+from vehicle_pose.geometry.parametrize import PARAMETRIZATIONS
 
 Status = Literal["queued", "running", "succeeded", "failed"]
 

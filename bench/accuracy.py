@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 from common import perturbed, photoreal_cases, projection_error, table, write_report
 
-from vehicle_pose.camera import Camera, look_at_camera
-from vehicle_pose.library import ModelLibrary
+from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.model.library import ModelLibrary
 from vehicle_pose.photo import load_photo
-from vehicle_pose.pipeline import RegistrationOptions, register
-from vehicle_pose.render import Renderer
-from vehicle_pose.synth import LIGHTINGS, synthesize
+from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 SUCCESS_PX = 5.0
 

@@ -39,9 +39,9 @@ CLI = [sys.executable, "-m", "vehicle_pose.cli"]
 
 from common import table, write_report  # noqa: E402
 
-from vehicle_pose.camera import look_at_camera  # noqa: E402
-from vehicle_pose.library import ModelLibrary  # noqa: E402
-from vehicle_pose.metadata import parse_axis  # noqa: E402
+from vehicle_pose.geometry.camera import look_at_camera  # noqa: E402
+from vehicle_pose.model.library import ModelLibrary  # noqa: E402
+from vehicle_pose.model.metadata import parse_axis  # noqa: E402
 
 
 def _run(cmd: list[str], env: dict[str, str]) -> tuple[float, subprocess.CompletedProcess[str]]:
@@ -75,7 +75,7 @@ def _subdivided_sedan(folder: Path, times: int = 4) -> Path:
 
 def _synthetic_case(model_id: str, folder: Path) -> tuple[Path, Path]:
     """A photo of a shipped model rendered by the project (and a start camera 6 degrees off)."""
-    from vehicle_pose.synth import synthesize
+    from vehicle_pose.render.synth import synthesize
 
     model = ModelLibrary().load(model_id)
     centre, _ = model.mesh.sphere
@@ -131,8 +131,8 @@ def _cases(args: argparse.Namespace, work: Path) -> list[dict]:
 
 _LOAD = """
 import sys, time
-from vehicle_pose.library import model_from_mesh
-from vehicle_pose.store import ModelStore
+from vehicle_pose.model.library import model_from_mesh
+from vehicle_pose.model.store import ModelStore
 t = time.perf_counter()
 m = model_from_mesh(sys.argv[1], up=sys.argv[2], forward=sys.argv[3], store=ModelStore(sys.argv[4]),
                     texture_dirs=tuple(sys.argv[5:]))

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vehicle_pose.camera import Camera
-from vehicle_pose.gl import get_context
-from vehicle_pose.library import VehicleModel, model_from_mesh
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.render.gl import get_context
+from vehicle_pose.model.library import VehicleModel, model_from_mesh
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -22,13 +22,13 @@ import numpy as np
 from accuracy import parse_options
 from common import photoreal_cases, projection_error, table, write_report
 
-from vehicle_pose.camera import Camera
-from vehicle_pose.identify import identify
-from vehicle_pose.library import ModelLibrary
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.registration.identify import identify
+from vehicle_pose.model.library import ModelLibrary
 from vehicle_pose.photo import load_photo
-from vehicle_pose.pipeline import RegistrationOptions, register
-from vehicle_pose.render import Renderer
-from vehicle_pose.synth import LIGHTINGS, random_framed_view, synthesize
+from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.render.synth import LIGHTINGS, random_framed_view, synthesize
 
 SUCCESS_PX = 5.0
 

@@ -23,13 +23,13 @@ import numpy as np
 from accuracy import parse_options
 from common import RESULTS, table, write_report
 
-from vehicle_pose.camera import Camera
-from vehicle_pose.initialize import rotation_angle as rotation_error
-from vehicle_pose.library import VehicleModel, model_from_mesh
-from vehicle_pose.overlay import draw_overlay, save_png
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.search.views import rotation_angle as rotation_error
+from vehicle_pose.model.library import VehicleModel, model_from_mesh
+from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.photo import load_photo
-from vehicle_pose.pipeline import RegistrationOptions, register
-from vehicle_pose.render import Renderer
+from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose.render.renderer import Renderer
 
 WORSE_DEG = 2.0
 """A case that ends more than this many degrees further from the annotation than it started."""

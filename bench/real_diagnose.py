@@ -28,18 +28,18 @@ from accuracy import parse_options
 from common import RESULTS, table, write_report
 from real import load_models
 
-from vehicle_pose.camera import Camera
-from vehicle_pose.edges import EdgeLoss
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.errors import CameraError, PoseError
-from vehicle_pose.initialize import rotation_angle
-from vehicle_pose.loss import make_target
-from vehicle_pose.losses import make_loss
-from vehicle_pose.optimize import NelderMeadRestarts
-from vehicle_pose.overlay import draw_overlay, save_png
+from vehicle_pose.search.views import rotation_angle
+from vehicle_pose.loss.invariant import make_target
+from vehicle_pose.loss.registry import make_loss
+from vehicle_pose.search.optimize import NelderMeadRestarts
+from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.photo import load_photo
-from vehicle_pose.pipeline import RegistrationOptions, _resize, _resize_mask, _view_params, register
-from vehicle_pose.render import Renderer
-from vehicle_pose.segment import grabcut_foreground
+from vehicle_pose.registration.pipeline import RegistrationOptions, _resize, _resize_mask, _view_params, register
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.segment.grabcut import grabcut_foreground
 
 
 class Objective:

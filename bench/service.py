@@ -26,10 +26,10 @@ from common import perturbed, projection_error, table, write_report
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from service_stack import encode, start_stack  # noqa: E402  (the tests' launcher of the real service)
 
-from vehicle_pose.camera import Camera, look_at_camera  # noqa: E402
-from vehicle_pose.library import ModelLibrary  # noqa: E402
-from vehicle_pose.metadata import parse_axis  # noqa: E402
-from vehicle_pose.synth import LIGHTINGS, synthesize  # noqa: E402
+from vehicle_pose.geometry.camera import Camera, look_at_camera  # noqa: E402
+from vehicle_pose.model.library import ModelLibrary  # noqa: E402
+from vehicle_pose.model.metadata import parse_axis  # noqa: E402
+from vehicle_pose.render.synth import LIGHTINGS, synthesize  # noqa: E402
 
 
 def make_cases(n: int, seed: int = 0) -> list[tuple[bytes, Camera, Camera]]:

@@ -3,7 +3,7 @@
 Usage: .venv/bin/python bench/speed.py [--repeats N] [--loss NAME] [--shared ../shared/bench]
 Prints a table and writes bench/results/speed.json. "pipeline LOD" is the mesh the finest
 registration level renders: the level of detail for the silhouette's size, without the faces
-no outside view sees (Renderer.exterior). With the photoreal cases present, each of their
+no outside view sees (vehicle_pose.render.exterior). With the photoreal cases present, each of their
 models is also timed at its first case's true camera.
 """
 
@@ -17,17 +17,18 @@ from pathlib import Path
 import numpy as np
 from common import photoreal_cases, table, write_report
 
-from vehicle_pose.camera import Camera, look_at_camera
-from vehicle_pose.library import VehicleModel
-from vehicle_pose.loss import make_target
-from vehicle_pose.losses import LOSSES, make_loss
-from vehicle_pose.mesh import load_mesh
-from vehicle_pose.metadata import ModelInfo
+from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.loss.invariant import make_target
+from vehicle_pose.loss.registry import LOSSES, make_loss
+from vehicle_pose.model.loading import load_mesh
+from vehicle_pose.model.metadata import ModelInfo
 from vehicle_pose.photo import load_photo
-from vehicle_pose.pipeline import RegistrationOptions, _face_budget
-from vehicle_pose.procedural import SEDAN, build_car
-from vehicle_pose.render import Frame, Renderer
-from vehicle_pose.synth import synthesize
+from vehicle_pose.registration.pipeline import RegistrationOptions, _face_budget
+from vehicle_pose.model.procedural import SEDAN, build_car
+from vehicle_pose.render.exterior import exterior_faces
+from vehicle_pose.render.renderer import Frame, Renderer
+from vehicle_pose.render.synth import synthesize
 
 
 def dense_sedan(target_faces: int, tmp: str) -> VehicleModel:
@@ -59,7 +60,7 @@ def main() -> None:
     def time_meshes(name: str, model: VehicleModel, cam: Camera, photo: np.ndarray, mask: np.ndarray) -> None:
         loss = make_loss(args.loss, make_target(photo, mask, color=False))
         lod = model.lod(_face_budget(float(mask.sum()), options))
-        for label, mesh in (("full mesh", model.mesh), ("pipeline LOD", renderer.exterior(lod))):
+        for label, mesh in (("full mesh", model.mesh), ("pipeline LOD", exterior_faces(renderer, lod))):
             frame = renderer.render(mesh, cam)
             loss(frame)
             t0 = time.perf_counter()

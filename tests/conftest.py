@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from vehicle_pose.camera import Camera, look_at_camera
-from vehicle_pose.gl import get_context
-from vehicle_pose.library import ModelLibrary, VehicleModel
-from vehicle_pose.mesh import Mesh, Part
-from vehicle_pose.metadata import parse_axis
-from vehicle_pose.render import Renderer
+from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.render.gl import get_context
+from vehicle_pose.model.library import ModelLibrary, VehicleModel
+from vehicle_pose.model.mesh import Mesh, Part
+from vehicle_pose.model.metadata import parse_axis
+from vehicle_pose.render.renderer import Renderer
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -12,7 +12,7 @@ from playwright.sync_api import sync_playwright
 from service_stack import encode, wait_for
 from test_register import perturbed
 
-from vehicle_pose.synth import LIGHTINGS, synthesize
+from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 pytestmark = pytest.mark.slow
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import view
 
-from vehicle_pose.camera import Camera
-from vehicle_pose.initialize import box_overflow, fit_to_box, rotation_angle
-from vehicle_pose.synth import border_crop_camera
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.search.views import box_overflow, fit_to_box, rotation_angle
+from vehicle_pose.render.synth import border_crop_camera
 
 
 def _projected_box(camera: Camera, points: np.ndarray, clip: bool = False) -> np.ndarray:

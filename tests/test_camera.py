@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from vehicle_pose.camera import MAX_MAGNITUDE, Camera
+from vehicle_pose.geometry.camera import MAX_MAGNITUDE, Camera
 from vehicle_pose.errors import CameraError
 
 BASE = {"K": [[500, 0, 160], [0, 500, 120], [0, 0, 1]], "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 5],

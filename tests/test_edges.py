@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from conftest import view
 
-from vehicle_pose.edges import ORIENTATIONS, EdgeLoss, photo_edges
-from vehicle_pose.render import Frame
-from vehicle_pose.synth import LIGHTINGS, synthesize
+from vehicle_pose.loss.edges import ORIENTATIONS, EdgeLoss, photo_edges
+from vehicle_pose.render.renderer import Frame
+from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 H, W = 120, 160
 

@@ -19,7 +19,7 @@ from service_stack import encode
 from test_register import perturbed
 from topology import Topology
 
-from vehicle_pose.synth import synthesize
+from vehicle_pose.render.synth import synthesize
 
 JOBS = 50
 

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vehicle_pose.loss import (
+from vehicle_pose.loss.invariant import (
     InvariantLoss,
     PartsInvariantLoss,
     PhotoTarget,
@@ -15,7 +15,7 @@ from vehicle_pose.loss import (
     normal_channels,
     part_channels,
 )
-from vehicle_pose.render import Frame
+from vehicle_pose.render.renderer import Frame
 
 
 def _regular(rng: np.random.Generator, k: int) -> np.ndarray:

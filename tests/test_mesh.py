@@ -11,15 +11,16 @@ import pytest
 import trimesh
 
 from vehicle_pose.errors import EmptyMeshError, ModelError, UnknownModelError
-from vehicle_pose.library import (
+from vehicle_pose.model.library import (
     LOD_AGREEMENT,
     ModelLibrary,
     VehicleModel,
     model_from_mesh,
 )
-from vehicle_pose.mesh import Mesh, Part, classify_part, load_mesh
-from vehicle_pose.metadata import ModelInfo, estimate_wheels, parse_axis
-from vehicle_pose.procedural import SEDAN, build_car
+from vehicle_pose.model.loading import load_mesh
+from vehicle_pose.model.mesh import Mesh, Part, classify_part
+from vehicle_pose.model.metadata import ModelInfo, estimate_wheels, parse_axis
+from vehicle_pose.model.procedural import SEDAN, build_car
 
 
 @pytest.mark.parametrize("fmt", ["obj", "ply", "off", "stl", "glb"])

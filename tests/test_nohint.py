@@ -9,24 +9,24 @@ import numpy as np
 import pytest
 from conftest import projection_error, view
 
-from vehicle_pose.camera import Camera
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.cli import main
 from vehicle_pose.errors import ModelError, UnknownModelError
-from vehicle_pose.identify import identify
-from vehicle_pose.initialize import (
+from vehicle_pose.registration.identify import identify
+from vehicle_pose.search.views import (
     distinct,
     rotation_angle,
     score_cameras,
     view_camera,
     view_search,
 )
-from vehicle_pose.library import LOD_AGREEMENT, ModelLibrary, install_model
-from vehicle_pose.mesh import KINDS
-from vehicle_pose.overlay import save_png
-from vehicle_pose.pipeline import RegistrationOptions, confidence, register
-from vehicle_pose.region import VehicleRegion, find_vehicle
-from vehicle_pose.synth import LIGHTINGS, _background, synthesize
-from vehicle_pose.wheels import detect_wheels, wheel_candidates
+from vehicle_pose.model.library import LOD_AGREEMENT, ModelLibrary, install_model
+from vehicle_pose.model.mesh import KINDS
+from vehicle_pose.render.overlay import save_png
+from vehicle_pose.registration.pipeline import RegistrationOptions, confidence, register
+from vehicle_pose.segment.region import VehicleRegion, find_vehicle
+from vehicle_pose.render.synth import LIGHTINGS, _background, synthesize
+from vehicle_pose.search.wheels import detect_wheels, wheel_candidates
 
 BODY_TYPES = ("sedan", "hatchback", "suv", "van", "pickup")
 

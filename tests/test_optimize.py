@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vehicle_pose.optimize import (
+from vehicle_pose.search.optimize import (
     CMAES,
     OPTIMIZERS,
     NelderMeadRestarts,
@@ -76,7 +76,7 @@ def test_runs_stop_at_their_evaluation_cap_and_the_search_restarts():
         calls.append(1)
         return float(np.sum((x - 2.0) ** 2))
 
-    import vehicle_pose.optimize as optimize_module
+    import vehicle_pose.search.optimize as optimize_module
 
     real_minimize = optimize_module.minimize
 

@@ -7,9 +7,9 @@ import pytest
 from conftest import projection_error, view
 from test_register import perturbed
 
-from vehicle_pose.parametrize import ThetaParams, ViewParams
-from vehicle_pose.pipeline import RegistrationOptions, register
-from vehicle_pose.synth import LIGHTINGS, synthesize
+from vehicle_pose.geometry.parametrize import ThetaParams, ViewParams
+from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 
 def test_view_origin_is_the_reference(sedan):

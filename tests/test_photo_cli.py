@@ -14,7 +14,7 @@ from PIL import Image
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 from vehicle_pose.photo import decode_photo, verify_photo
-from vehicle_pose.pipeline import RegistrationOptions
+from vehicle_pose.registration.pipeline import RegistrationOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 

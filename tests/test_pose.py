@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vehicle_pose.camera import Camera
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import PoseError
-from vehicle_pose.metadata import WheelGeometry
-from vehicle_pose.pose import Theta, camera_to_theta, theta_to_camera, visible_side
+from vehicle_pose.model.metadata import WheelGeometry
+from vehicle_pose.geometry.pose import Theta, camera_to_theta, theta_to_camera, visible_side
 
 WHEELS = WheelGeometry(np.array([-1.3, 0.02, 0.31]), np.array([1.4, 0.02, 0.31]), np.array([0.0, 1.0, 0.0]), 1.56, 0.31)
 W, H = 640, 480

@@ -7,10 +7,10 @@ import pytest
 from conftest import projection_error, view
 from scipy.spatial.transform import Rotation
 
-from vehicle_pose.camera import Camera
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import BlankPhotoError, CameraError, PoseError
-from vehicle_pose.pipeline import RegistrationOptions, register
-from vehicle_pose.synth import LIGHTINGS, synthesize
+from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 pytestmark = pytest.mark.slow
 
@@ -119,7 +119,7 @@ def test_alternative_losses_run_through_the_same_pipeline(sedan, renderer, loss)
 
 
 def test_dolly_zooms_keep_centre_size_and_orientation(sedan):
-    from vehicle_pose.pipeline import _dolly_zooms
+    from vehicle_pose.registration.pipeline import _dolly_zooms
 
     cam = view(sedan, 40.0, 15.0, focal=900.0)
     centre = sedan.mesh.sphere[0]
@@ -135,7 +135,7 @@ def test_a_start_with_the_wrong_perspective_is_recovered(sedan, renderer):
     """A wide-angle photo registered from a start with 1.8 times its focal length."""
     truth = view(sedan, 35.0, 12.0, distance=5.5, focal=420.0)
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
-    from vehicle_pose.pipeline import _dolly_zooms
+    from vehicle_pose.registration.pipeline import _dolly_zooms
 
     start = _dolly_zooms(perturbed(truth, 9, degrees=4.0, shift=0.02, focal=0.0), sedan, (1.8,))[0]
     assert projection_error(sedan, start, truth) > 5.0
@@ -145,7 +145,7 @@ def test_a_start_with_the_wrong_perspective_is_recovered(sedan, renderer):
 
 
 def test_a_focal_length_outside_the_usual_range_adds_a_probe_to_its_middle(sedan):
-    from vehicle_pose.pipeline import _probe_factors
+    from vehicle_pose.registration.pipeline import _probe_factors
 
     options = RegistrationOptions()
     usual = view(sedan, 60.0, 10.0, focal=1.5 * 640)
@@ -161,7 +161,7 @@ def test_the_papers_nearly_orthographic_start_is_registered(sedan, renderer):
     """The paper's start has f = 10 W; the photo was taken at 1 W."""
     truth = view(sedan, 60.0, 10.0, distance=6.0, focal=640.0)
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=4)
-    from vehicle_pose.pipeline import _dolly_zooms
+    from vehicle_pose.registration.pipeline import _dolly_zooms
 
     start = _dolly_zooms(perturbed(truth, 4, degrees=4.0, shift=0.02, focal=0.0), sedan, (10.0,))[0]
     assert start.focal == pytest.approx(10 * truth.width)

@@ -7,8 +7,9 @@ import pytest
 import trimesh
 from conftest import mesh_from_trimesh
 
-from vehicle_pose.camera import Camera, look_at_camera
-from vehicle_pose.render import Frame
+from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.render.exterior import exterior_faces
+from vehicle_pose.render.renderer import Frame
 
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
 
@@ -60,9 +61,10 @@ def test_flipped_faces_give_the_same_normals(renderer):
     faces[::2] = faces[::2, ::-1]
     flipped = trimesh.Trimesh(flipped.vertices, faces, process=False)
     assert not flipped.is_winding_consistent
-    from vehicle_pose.mesh import Mesh, Part, _shading_geometry
+    from vehicle_pose.model.loading import shading_geometry
+    from vehicle_pose.model.mesh import Mesh, Part
 
-    verts, normals, tris = _shading_geometry(flipped)
+    verts, normals, tris = shading_geometry(flipped)
     bad = Mesh((Part("p", "body", verts, normals, tris, np.ones(len(verts), np.float32)),))
     cam = _box_camera(45, 20)
     good = renderer.render(mesh_from_trimesh(sphere), cam)
@@ -109,7 +111,7 @@ def test_frame_indices_address_the_whole_image():
 def test_textured_parts_modulate_albedo(renderer, tmp_path):
     from PIL import Image
 
-    from vehicle_pose.mesh import load_mesh
+    from vehicle_pose.model.loading import load_mesh
 
     quad = trimesh.Trimesh([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]], [[0, 1, 2], [0, 2, 3]], process=False)
     tex = np.zeros((8, 8, 3), np.uint8)
@@ -132,7 +134,7 @@ def test_textures_are_not_upside_down(renderer, tmp_path, suffix):
     # which is the image's top in every format trimesh reads (OBJ and glTF alike).
     from PIL import Image
 
-    from vehicle_pose.mesh import load_mesh
+    from vehicle_pose.model.loading import load_mesh
 
     quad = trimesh.Trimesh([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]], [[0, 1, 2], [0, 2, 3]], process=False)
     tex = np.zeros((16, 16, 3), np.uint8)
@@ -157,7 +159,7 @@ def test_parts_with_textures_of_different_sizes_keep_their_own(renderer):
     # Three quads side by side in one mesh, drawn in one call: a 4x4 texture dark on its left
     # half, a 16x16 one dark on its lower half (one texture array, the smaller layer resized),
     # and an untextured part; each shows its own pattern, as when rendered alone.
-    from vehicle_pose.mesh import Mesh, Part
+    from vehicle_pose.model.mesh import Mesh, Part
 
     def quad(y, tex, label):
         verts = np.array([[0, y - 0.45, -0.45], [0, y + 0.45, -0.45], [0, y + 0.45, 0.45], [0, y - 0.45, 0.45]])
@@ -197,7 +199,7 @@ def test_parts_with_textures_of_different_sizes_keep_their_own(renderer):
 def test_degenerate_triangles_give_finite_attributes(renderer):
     verts = np.array([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1], [0, 0, 0], [0, 0, 0]], np.float64)
     faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 5]], np.uint32)
-    from vehicle_pose.mesh import Mesh, Part
+    from vehicle_pose.model.mesh import Mesh, Part
 
     mesh = Mesh((Part("p", "body", verts, np.zeros((6, 3), np.float32), faces, np.ones(6, np.float32)),))
     cam = look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=0, elevation_deg=0, distance=4.0,
@@ -233,13 +235,13 @@ def test_exterior_drops_hidden_faces_and_renders_the_same(renderer):
     mesh = mesh_from_trimesh(trimesh.util.concatenate([outer, inner, ball]))
     # 12 hidden faces of 344 are too few to be worth dropping by default (min_hidden=0.05):
     # they are kept, drawn from both sides; every other face is seen from outside only.
-    kept = renderer.exterior(mesh)
+    kept = exterior_faces(renderer, mesh)
     assert kept.n_faces == mesh.n_faces
     assert sum(len(p.faces) for p in kept.parts if not p.one_sided) == len(inner.faces)
-    ext = renderer.exterior(mesh, min_hidden=0.0)
+    ext = exterior_faces(renderer, mesh, min_hidden=0.0)
     assert ext.n_faces == mesh.n_faces - len(inner.faces)
     assert all(p.one_sided for p in ext.parts)
-    assert renderer.exterior(mesh, min_hidden=0.0) is ext  # cached per mesh and arguments
+    assert exterior_faces(renderer, mesh, min_hidden=0.0) is ext  # cached per mesh and arguments
     corners = np.concatenate([p.vertices[p.faces].reshape(-1, 3) for p in ext.parts])
     assert np.abs(corners).max(axis=0)[1] > 0.85  # the outer box and the sphere remain
     assert not np.any(np.all(np.abs(corners) < [1.01, 0.51, 0.41], axis=1)), "an inner-box face was kept"
@@ -250,7 +252,7 @@ def test_exterior_drops_hidden_faces_and_renders_the_same(renderer):
 def test_exterior_drops_a_large_hidden_part_by_default(renderer):
     engine = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
     mesh = mesh_from_trimesh(trimesh.util.concatenate([trimesh.creation.box(extents=(4.0, 1.8, 1.4)), engine]))
-    assert renderer.exterior(mesh).n_faces == 12
+    assert exterior_faces(renderer, mesh).n_faces == 12
 
 
 def test_exterior_orients_inconsistent_winding_for_culling(renderer):
@@ -262,7 +264,7 @@ def test_exterior_orients_inconsistent_winding_for_culling(renderer):
     flip = np.random.default_rng(3).random(len(faces)) < 0.5
     faces[flip] = faces[flip][:, ::-1]
     mesh = mesh_from_trimesh(trimesh.Trimesh(sphere.vertices * [2.0, 0.9, 0.7], faces, process=False))
-    ext = renderer.exterior(mesh)
+    ext = exterior_faces(renderer, mesh)
     assert ext.n_faces == mesh.n_faces and all(p.one_sided for p in ext.parts)
     _assert_renders_the_same(renderer, mesh, ext, _VIEWS)
     _assert_renders_the_same(renderer, mesh, ext, _VIEWS[:4], distance=2.6, focal=120.0)
@@ -275,7 +277,7 @@ def test_exterior_keeps_a_thin_sheet_two_sided(renderer):
     fin = trimesh.Trimesh([[1.0, 0.0, 0.7], [2.0, 0.0, 0.7], [2.0, 0.0, 1.5], [1.0, 0.0, 1.5]],
                           [[0, 1, 2], [0, 2, 3]], process=False)
     mesh = mesh_from_trimesh(trimesh.util.concatenate([body, fin]))
-    ext = renderer.exterior(mesh)
+    ext = exterior_faces(renderer, mesh)
     assert sum(len(p.faces) for p in ext.parts if p.one_sided) == len(body.faces)
     assert sum(len(p.faces) for p in ext.parts if not p.one_sided) == len(fin.faces)
     # Views of either side of the fin.

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from conftest import view
 
-from vehicle_pose.camera import Camera
-from vehicle_pose.pipeline import _box_mask
-from vehicle_pose.segment import grabcut_foreground
-from vehicle_pose.synth import synthesize
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.registration.pipeline import _box_mask
+from vehicle_pose.segment.grabcut import grabcut_foreground
+from vehicle_pose.render.synth import synthesize
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

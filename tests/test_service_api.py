@@ -21,9 +21,9 @@ from PIL import Image
 from service_stack import SERVICE, children, encode, wait_for
 from test_register import perturbed
 
-from vehicle_pose.camera import Camera
-from vehicle_pose.library import ModelLibrary
-from vehicle_pose.synth import LIGHTINGS, synthesize
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.model.library import ModelLibrary
+from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 pytestmark = pytest.mark.slow
 
@@ -271,7 +271,7 @@ def test_bad_hints_and_unknown_model_are_refused_before_queueing(service, scene)
 
 def test_no_hint_identification(service, renderer):
     """No start camera, no box, two candidate models: the worker finds the van and its pose."""
-    from vehicle_pose.library import ModelLibrary
+    from vehicle_pose.model.library import ModelLibrary
 
     van = ModelLibrary().load("van")
     truth = view(van, 60.0, 10.0, focal=500.0, distance=11.0, width=320, height=240)
@@ -415,7 +415,7 @@ def test_a_job_past_its_time_limit_fails_as_timeout(tmp_path, scene):
 
 def _prepared(mesh: Path) -> dict | None:
     """The manifest of a mesh's entry in the services' store (tests/service_stack.py)."""
-    from vehicle_pose.store import ModelStore
+    from vehicle_pose.model.store import ModelStore
 
     store = ModelStore(Path(os.environ["VEHICLE_POSE_CACHE_DIR"]) / "service")
     manifest = store.root / store.key(mesh.resolve(), []) / "manifest.json"

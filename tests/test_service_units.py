@@ -22,7 +22,7 @@ from app.core.security import create_client
 from app.core.storage import LocalStorage, ObjectMissing
 from app.models import Client, JobStatus, Registration
 from app.uploads import sniff_image
-from vehicle_pose.synth import synthesize
+from vehicle_pose.render.synth import synthesize
 
 
 def test_settings_refuse_unsafe_combinations(tmp_path):
@@ -172,7 +172,7 @@ def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, se
     from conftest import projection_error
     from test_register import perturbed
 
-    from vehicle_pose.camera import Camera
+    from vehicle_pose.geometry.camera import Camera
     from worker.jobs import run_job
 
     client_id, store = service_db
@@ -290,7 +290,7 @@ def test_real_photo_options_reach_the_engine_and_are_bounded():
     from dataclasses import replace
 
     from app.schemas import RegistrationOptionsIn
-    from vehicle_pose.pipeline import RegistrationOptions
+    from vehicle_pose.registration.pipeline import RegistrationOptions
 
     kwargs = RegistrationOptionsIn.model_validate_json(
         '{"edge_weight": 0, "box_weight": 2.5, "fit_start_to_box": false}').engine_kwargs()

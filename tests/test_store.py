@@ -14,11 +14,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from vehicle_pose.library import ModelLibrary, model_from_mesh
-from vehicle_pose.mesh import Mesh, _oriented, load_mesh
-from vehicle_pose.pipeline import RegistrationOptions, register
-from vehicle_pose.store import ModelStore, default_budgets, default_cache_dir
-from vehicle_pose.synth import synthesize
+from vehicle_pose.model.library import ModelLibrary, model_from_mesh
+from vehicle_pose.model.loading import load_mesh, oriented_faces
+from vehicle_pose.model.mesh import Mesh
+from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose.model.store import ModelStore, default_budgets, default_cache_dir
+from vehicle_pose.render.synth import synthesize
 
 from conftest import view
 
@@ -96,13 +97,13 @@ def test_corrupt_array_or_manifest_is_rebuilt(tmp_path, caplog):
     data = bytearray(victim.read_bytes())
     data[-9] ^= 0xFF
     victim.write_bytes(bytes(data))
-    with caplog.at_level(logging.WARNING, logger="vehicle_pose.store"):
+    with caplog.at_level(logging.WARNING, logger="vehicle_pose.model.store"):
         again = model_from_mesh(SEDAN, store=store)
     assert "unreadable" in caplog.text
     _same(reference.mesh, again.mesh)
     (folder / "manifest.json").write_text("{not json")
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="vehicle_pose.store"):
+    with caplog.at_level(logging.WARNING, logger="vehicle_pose.model.store"):
         third = model_from_mesh(SEDAN, store=store)
     assert "unreadable" in caplog.text
     _same(reference.mesh, third.mesh)
@@ -159,7 +160,7 @@ def test_winding_repair_agrees_with_trimesh_and_is_consistent():
     flip = rng.random(len(f)) < 0.3
     flip[[0, len(parts[0].faces), len(parts[0].faces) + len(parts[1].faces)]] = False  # each part's first face
     f[flip] = f[flip][:, ::-1]
-    mine = _oriented(f)
+    mine = oriented_faces(f)
     assert trimesh.Trimesh(v, mine, process=False).is_winding_consistent
     reference = trimesh.Trimesh(v, f, process=False)
     trimesh.repair.fix_winding(reference)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from conftest import view
 
-from vehicle_pose.window import Window
+from vehicle_pose.geometry.window import Window
 
 
 def test_window_grows_the_box_within_the_image_and_never_enlarges():

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 # Names are imported from their modules on first use (PEP 562), so that a command that needs
 # only the model library does not pay for the renderer, the optimisers and trimesh.
 _WHERE = {
-    "Camera": "camera",
+    "Camera": "geometry.camera",
     "CameraError": "errors",
     "EmptyMeshError": "errors",
     "ModelError": "errors",
@@ -20,28 +20,28 @@ _WHERE = {
     "RenderError": "errors",
     "UnknownModelError": "errors",
     "VehiclePoseError": "errors",
-    "ModelLibrary": "library",
-    "VehicleModel": "library",
-    "model_from_mesh": "library",
-    "InvariantLoss": "loss",
-    "PhotoTarget": "loss",
-    "invariant_loss": "loss",
-    "Mesh": "mesh",
-    "load_mesh": "mesh",
+    "ModelLibrary": "model.library",
+    "VehicleModel": "model.library",
+    "model_from_mesh": "model.library",
+    "InvariantLoss": "loss.invariant",
+    "PhotoTarget": "loss.invariant",
+    "invariant_loss": "loss.invariant",
+    "Mesh": "model.mesh",
+    "load_mesh": "model.loading",
     "decode_photo": "photo",
     "load_photo": "photo",
-    "RegistrationOptions": "options",
-    "RegistrationResult": "pipeline",
-    "register": "pipeline",
-    "ModelStore": "store",
-    "Theta": "pose",
-    "camera_to_theta": "pose",
-    "theta_to_camera": "pose",
+    "RegistrationOptions": "registration.options",
+    "RegistrationResult": "registration.pipeline",
+    "register": "registration.pipeline",
+    "ModelStore": "model.store",
+    "Theta": "geometry.pose",
+    "camera_to_theta": "geometry.pose",
+    "theta_to_camera": "geometry.pose",
 }
 
 if TYPE_CHECKING:
-    from .camera import Camera
-    from .errors import (
+    from vehicle_pose.geometry.camera import Camera
+    from vehicle_pose.errors import (
         CameraError,
         EmptyMeshError,
         ModelError,
@@ -52,14 +52,15 @@ if TYPE_CHECKING:
         UnknownModelError,
         VehiclePoseError,
     )
-    from .library import ModelLibrary, VehicleModel, model_from_mesh
-    from .loss import InvariantLoss, PhotoTarget, invariant_loss
-    from .mesh import Mesh, load_mesh
-    from .options import RegistrationOptions
-    from .photo import decode_photo, load_photo
-    from .pipeline import RegistrationResult, register
-    from .pose import Theta, camera_to_theta, theta_to_camera
-    from .store import ModelStore
+    from vehicle_pose.model.library import ModelLibrary, VehicleModel, model_from_mesh
+    from vehicle_pose.loss.invariant import InvariantLoss, PhotoTarget, invariant_loss
+    from vehicle_pose.model.loading import load_mesh
+    from vehicle_pose.model.mesh import Mesh
+    from vehicle_pose.registration.options import RegistrationOptions
+    from vehicle_pose.photo import decode_photo, load_photo
+    from vehicle_pose.registration.pipeline import RegistrationResult, register
+    from vehicle_pose.geometry.pose import Theta, camera_to_theta, theta_to_camera
+    from vehicle_pose.model.store import ModelStore
 
 
 def __getattr__(name: str) -> Any:

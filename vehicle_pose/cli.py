@@ -15,14 +15,14 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
-from . import __version__
-from .errors import RenderError, VehiclePoseError
-from .metadata import UNITS
-from .options import LOSS_NAMES, OPTIMIZER_NAMES, PARAMETRIZATION_NAMES, RegistrationOptions
+from vehicle_pose import __version__
+from vehicle_pose.errors import RenderError, VehiclePoseError
+from vehicle_pose.model.metadata import UNITS
+from vehicle_pose.registration.options import LOSS_NAMES, OPTIMIZER_NAMES, PARAMETRIZATION_NAMES, RegistrationOptions
 
 if TYPE_CHECKING:
-    from .library import VehicleModel
-    from .store import ModelStore
+    from vehicle_pose.model.library import VehicleModel
+    from vehicle_pose.model.store import ModelStore
 
 # The renderer, the optimisers and trimesh are imported by the commands that use them:
 # ``--help`` and ``models`` answer without them.
@@ -98,7 +98,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _store(args: argparse.Namespace) -> ModelStore | None:
-    from .store import ModelStore
+    from vehicle_pose.model.store import ModelStore
 
     if getattr(args, "no_cache", False):
         return None
@@ -112,9 +112,9 @@ def _is_path(spec: str) -> bool:
 def _load_models(args: argparse.Namespace, specs: list[str]) -> list[VehicleModel]:
     """Models named by mesh paths or library specs, each prepared completely on its first
     use (levels of detail and exterior passes, with a progress line) when a store is on."""
-    from .library import ModelLibrary, model_from_mesh
-    from .render import Renderer
-    from .store import default_budgets
+    from vehicle_pose.model.library import ModelLibrary, model_from_mesh
+    from vehicle_pose.render.renderer import Renderer
+    from vehicle_pose.model.store import default_budgets
 
     store = _store(args)
     lib = ModelLibrary(args.models_dir, store=store)
@@ -149,7 +149,7 @@ def _prepare(model: VehicleModel, budgets: list[int], renderer: object) -> None:
 
 
 def _prepare_command(args: argparse.Namespace) -> int:
-    from .library import ModelLibrary
+    from vehicle_pose.model.library import ModelLibrary
 
     specs = args.model or ModelLibrary(args.models_dir).ids()
     for model in _load_models(args, specs):
@@ -158,10 +158,10 @@ def _prepare_command(args: argparse.Namespace) -> int:
 
 
 def _register(args: argparse.Namespace) -> int:
-    from .camera import Camera
-    from .identify import register_or_identify
-    from .overlay import draw_overlay, save_png
-    from .photo import load_photo
+    from vehicle_pose.geometry.camera import Camera
+    from vehicle_pose.registration.identify import register_or_identify
+    from vehicle_pose.render.overlay import draw_overlay, save_png
+    from vehicle_pose.photo import load_photo
 
     photo = load_photo(args.photo)
     models = _load_models(args, [args.model])
@@ -204,7 +204,7 @@ def _register(args: argparse.Namespace) -> int:
 
 
 def _models(args: argparse.Namespace) -> int:
-    from .library import ModelLibrary
+    from vehicle_pose.model.library import ModelLibrary
 
     lib = ModelLibrary(args.models_dir)
     for model_id in lib.ids():

@@ -12,7 +12,7 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from .errors import PhotoError, PhotoTooLargeError
+from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 
 __all__ = ["load_photo", "decode_photo", "verify_photo", "is_gray", "MAX_PIXELS"]
 

@@ -31,8 +31,8 @@ from vehicle_pose import (
     decode_photo,
 )
 from vehicle_pose.errors import RenderError
-from vehicle_pose.identify import register_or_identify
-from vehicle_pose.overlay import draw_overlay, encode_image
+from vehicle_pose.registration.identify import register_or_identify
+from vehicle_pose.render.overlay import draw_overlay, encode_image
 
 log = logging.getLogger(__name__)
 

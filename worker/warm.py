@@ -18,7 +18,7 @@ log = logging.getLogger("worker.warm")
 def prepare_model(model_id: str) -> float:
     """Prepare one library model (its levels of detail and exterior passes); the seconds."""
     from app.core.library import get_library
-    from vehicle_pose.render import Renderer
+    from vehicle_pose.render.renderer import Renderer
 
     t = time.perf_counter()
     get_library().load(model_id).prepare(Renderer())

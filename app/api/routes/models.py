@@ -12,8 +12,8 @@ from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import JSONResponse
 
 from vehicle_pose import EmptyMeshError, ModelError, UnknownModelError
-from vehicle_pose.library import MODEL_ID, install_model
-from vehicle_pose.metadata import UNITS, ModelInfo
+from vehicle_pose.model.library import MODEL_ID, install_model
+from vehicle_pose.model.metadata import UNITS, ModelInfo
 
 from ...core.library import get_library, get_store
 from ...core.problems import Problem

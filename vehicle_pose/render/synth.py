@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
-from .library import VehicleModel
-from .mesh import KINDS, Mesh
-from .render import Renderer
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.model.mesh import KINDS, Mesh
+from vehicle_pose.render.renderer import Renderer
 
 __all__ = ["Lighting", "LIGHTINGS", "HAZARDS", "synthesize", "synthesize_hazard", "border_crop_camera",
            "random_framed_view"]
@@ -187,7 +187,7 @@ def random_framed_view(
     """A random camera that shows the whole vehicle: azimuth 0-360, elevation 3-30 degrees,
     focal length 0.8-2.5 image widths, the vehicle 40-80 % of the image width, a little off
     centre. Returns the camera and its view parameters."""
-    from .initialize import view_camera
+    from vehicle_pose.search.views import view_camera
 
     az, el = float(rng.uniform(0, 360)), float(rng.uniform(3, 30))
     focal = float(rng.uniform(0.8, 2.5)) * width

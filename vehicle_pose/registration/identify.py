@@ -16,11 +16,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
-from .errors import PoseError
-from .library import VehicleModel
-from .pipeline import RegistrationOptions, RegistrationResult, register
-from .render import Renderer
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.errors import PoseError
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.registration.pipeline import RegistrationOptions, RegistrationResult, register
+from vehicle_pose.render.renderer import Renderer
 
 __all__ = ["Identification", "identify", "fit_score", "register_or_identify"]
 

@@ -12,8 +12,8 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from .loss import InvariantLoss, PartsInvariantLoss, PhotoTarget
-from .render import Frame, headlight
+from vehicle_pose.loss.invariant import InvariantLoss, PartsInvariantLoss, PhotoTarget
+from vehicle_pose.render.renderer import Frame, headlight
 
 __all__ = ["LOSSES", "make_loss", "headlight_shading"]
 

@@ -20,9 +20,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
-from .options import PARAMETRIZATION_NAMES
-from .pose import Side, SideGeometry, Theta, camera_to_theta, theta_to_camera
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.registration.options import PARAMETRIZATION_NAMES
+from vehicle_pose.geometry.pose import Side, SideGeometry, Theta, camera_to_theta, theta_to_camera
 
 __all__ = ["Parametrization", "ThetaParams", "ViewParams", "PARAMETRIZATIONS"]
 

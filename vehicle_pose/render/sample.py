@@ -1,6 +1,6 @@
 """The shipped sample: a synthetic photo of a library model, a rough start camera, the truth.
 
-Run ``python -m vehicle_pose.sample DIR`` to (re)write it into DIR (default ``examples``).
+Run ``python -m vehicle_pose.render.sample DIR`` to (re)write it into DIR (default ``examples``).
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import Camera, look_at_camera
-from .library import ModelLibrary
-from .metadata import parse_axis
-from .synth import LIGHTINGS, synthesize
+from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.model.library import ModelLibrary
+from vehicle_pose.model.metadata import parse_axis
+from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 __all__ = ["write_sample"]
 

@@ -3,7 +3,7 @@
 A grid of views (azimuth x elevation x in-plane roll) is placed so that the model's projection
 fills the vehicle's region, rendered at low resolution and scored against the region (silhouette
 IoU) and the photo (the invariant loss on the region's pixels); the best few distinct views are
-kept. Start poses from matched wheel ellipses (:mod:`vehicle_pose.wheels`) are scored the same
+kept. Start poses from matched wheel ellipses (:mod:`vehicle_pose.search.wheels`) are scored the same
 way, so both kinds compete on one scale.
 """
 
@@ -16,16 +16,16 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from .camera import Camera, look_at_camera
-from .options import WINDOW_MARGIN
-from .errors import CameraError
-from .library import VehicleModel
-from .loss import InvariantLoss, make_target
-from .losses import SilhouetteIoULoss
-from .metadata import parse_axis
-from .region import VehicleRegion
-from .render import Renderer
-from .window import Window
+from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.registration.options import WINDOW_MARGIN
+from vehicle_pose.errors import CameraError
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.loss.invariant import InvariantLoss, make_target
+from vehicle_pose.loss.registry import SilhouetteIoULoss
+from vehicle_pose.model.metadata import parse_axis
+from vehicle_pose.segment.region import VehicleRegion
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.geometry.window import Window
 
 __all__ = [
     "Box",
@@ -229,7 +229,7 @@ def score_cameras(
 ) -> list[Candidate]:
     """The candidates with their score, IoU and loss filled in, best first.
 
-    They are scored on a window around the region (see :class:`~vehicle_pose.window.Window`)
+    They are scored on a window around the region (see :class:`~vehicle_pose.geometry.window.Window`)
     reduced to ``size`` pixels; ``margin=None`` scores on the whole photo.
     """
     scorer = _Scorer(rgb, region, model, renderer, size, max_faces, margin)

@@ -2,7 +2,7 @@
 
 Models are loaded once per process and kept (with their coarser levels of detail) in a small
 cache, so a worker that registers many photos of the same model loads its mesh once; with a
-:class:`~vehicle_pose.store.ModelStore`, what was prepared once is read back from disk by every
+:class:`~vehicle_pose.model.store.ModelStore`, what was prepared once is read back from disk by every
 later process.
 """
 
@@ -18,13 +18,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .errors import ModelError, UnknownModelError
-from .metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
+from vehicle_pose.errors import ModelError, UnknownModelError
+from vehicle_pose.model.metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
 
 if TYPE_CHECKING:
-    from .mesh import Mesh
-    from .render import Renderer
-    from .store import Levels, ModelStore
+    from vehicle_pose.model.mesh import Mesh
+    from vehicle_pose.render.renderer import Renderer
+    from vehicle_pose.model.store import Levels, ModelStore
 
 __all__ = ["AUTO", "VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
 
@@ -35,7 +35,7 @@ LOD_AGREEMENT = 0.98
 
 def default_library_root() -> Path:
     """The ``vehicle_models/`` folder of this checkout."""
-    return Path(__file__).resolve().parents[1] / "vehicle_models"
+    return Path(__file__).resolve().parents[2] / "vehicle_models"
 
 
 @dataclass(eq=False)
@@ -48,7 +48,7 @@ class VehicleModel:
 
     def __post_init__(self) -> None:
         if self.levels is None:
-            from .store import Levels
+            from vehicle_pose.model.store import Levels
 
             self.levels = Levels(self.mesh)
 
@@ -76,7 +76,7 @@ class VehicleModel:
         return mesh
 
     def exterior(self, max_faces: int, renderer: Renderer) -> Mesh:
-        """:meth:`Renderer.exterior` of :meth:`lod`, computed once per model and GL driver."""
+        """The exterior pass (:func:`~vehicle_pose.render.exterior.exterior_faces`) of :meth:`lod`, computed once per model and GL driver."""
         assert self.levels is not None
         return self.levels.exterior(max_faces, self.lod(max_faces), renderer)
 
@@ -88,7 +88,7 @@ class VehicleModel:
         threads corrupt each other."""
         import time
 
-        from .store import default_budgets
+        from vehicle_pose.model.store import default_budgets
 
         for b in budgets if budgets is not None else default_budgets(self.mesh.n_faces):
             t = time.perf_counter()
@@ -112,7 +112,7 @@ def _complete(info: ModelInfo, mesh: Mesh, levels: Levels | None = None) -> Mode
 
 def _open(path: Path, texture_dirs: Sequence[Path], store: ModelStore | None) -> tuple[Mesh, Levels | None]:
     if store is None:
-        from .mesh import load_mesh
+        from vehicle_pose.model.loading import load_mesh
 
         return load_mesh(path, texture_dirs=texture_dirs), None
     return store.open(path, texture_dirs)

@@ -15,10 +15,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
-from .edges import EdgeLoss
-from .errors import BlankPhotoError, CameraError, PoseError
-from .initialize import (
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.loss.edges import EdgeLoss
+from vehicle_pose.errors import BlankPhotoError, CameraError, PoseError
+from vehicle_pose.search.views import (
     Box,
     Candidate,
     box_overflow,
@@ -31,19 +31,19 @@ from .initialize import (
     view_camera,
     view_search,
 )
-from .library import VehicleModel
-from .loss import make_target
-from .losses import LOSSES, make_loss
-from .optimize import OPTIMIZERS, Optimizer, OptimizeResult
-from .options import RegistrationOptions
-from .parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
-from .photo import is_gray
-from .pose import Side, Theta, camera_to_theta, visible_side
-from .region import VehicleRegion, find_vehicle
-from .render import Renderer
-from .segment import grabcut_foreground
-from .wheels import detect_wheels, wheel_candidates
-from .window import Window
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.loss.invariant import make_target
+from vehicle_pose.loss.registry import LOSSES, make_loss
+from vehicle_pose.search.optimize import OPTIMIZERS, Optimizer, OptimizeResult
+from vehicle_pose.registration.options import RegistrationOptions
+from vehicle_pose.geometry.parametrize import PARAMETRIZATIONS, Parametrization, ThetaParams, ViewParams
+from vehicle_pose.photo import is_gray
+from vehicle_pose.geometry.pose import Side, Theta, camera_to_theta, visible_side
+from vehicle_pose.segment.region import VehicleRegion, find_vehicle
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.segment.grabcut import grabcut_foreground
+from vehicle_pose.search.wheels import detect_wheels, wheel_candidates
+from vehicle_pose.geometry.window import Window
 
 __all__ = ["RegistrationOptions", "LevelReport", "RegistrationResult", "register", "confidence"]
 

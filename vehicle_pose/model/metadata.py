@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .errors import ModelError
-from .pose import Side, SideGeometry
+from vehicle_pose.errors import ModelError
+from vehicle_pose.geometry.pose import Side, SideGeometry
 
 __all__ = ["UNITS", "WheelGeometry", "ModelInfo", "parse_axis", "estimate_wheels"]
 

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
+from vehicle_pose.geometry.camera import Camera
 
 __all__ = ["Window"]
 

@@ -18,14 +18,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
-from .errors import PoseError
-from .initialize import Candidate
-from .library import VehicleModel
-from .metadata import parse_axis
-from .pose import Theta, theta_to_camera
-from .region import VehicleRegion
-from .segment import disk
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.errors import PoseError
+from vehicle_pose.search.views import Candidate
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.model.metadata import parse_axis
+from vehicle_pose.geometry.pose import Theta, theta_to_camera
+from vehicle_pose.segment.region import VehicleRegion
+from vehicle_pose.segment.grabcut import disk
 
 __all__ = ["Ellipse", "detect_wheels", "wheel_candidates"]
 

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .segment import disk
+from vehicle_pose.segment.grabcut import disk
 
 __all__ = ["VehicleRegion", "find_vehicle", "largest_component"]
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from .moments import frame_loss
-from .photo import is_gray
-from .render import Frame
+from vehicle_pose.loss.moments import frame_loss
+from vehicle_pose.photo import is_gray
+from vehicle_pose.render.renderer import Frame
 
 __all__ = [
     "PhotoTarget",
@@ -269,7 +269,7 @@ class InvariantLoss:
     def _compiled(self, frame: Frame, *, merge: bool) -> float:
         """The loss of the material channels (one indicator per material, k_a, k_d * normal),
         or with ``merge`` of :func:`normal_channels` (every material taken as one), in one
-        compiled pass (:func:`vehicle_pose.moments.frame_loss`)."""
+        compiled pass (:func:`vehicle_pose.loss.moments.frame_loss`)."""
         return frame_loss(frame.labels, frame.attrs, self._fw, self._w, unit_weights=self._unit_weights,
                           x0=frame.x0, y0=frame.y0, width=frame.width, kinds=frame.n_parts, merge=merge,
                           min_pixels=self.min_pixels, sw=self._sw, mean_f=self._mean_f, w_f=self._w_f, rtol=_RTOL)
@@ -280,7 +280,7 @@ class PartsInvariantLoss(InvariantLoss):
 
     Equal to ``InvariantLoss(target, channels=part_channels)`` (to rounding), but no (N, m)
     channel matrix is built: the moments of the one-hot material channels are label counts
-    and per-label sums, gathered in one compiled pass (:mod:`vehicle_pose.moments`).
+    and per-label sums, gathered in one compiled pass (:mod:`vehicle_pose.loss.moments`).
     """
 
     name = "invariant-parts"

@@ -11,7 +11,7 @@ import threading
 
 import moderngl
 
-from .errors import RenderError
+from vehicle_pose.errors import RenderError
 
 __all__ = ["get_context", "release_context"]
 

@@ -14,11 +14,11 @@ LOSS_NAMES: tuple[str, ...] = (
     "invariant", "invariant-paper", "invariant-parts", "correlation", "squared", "silhouette-iou",
     "mutual-information",
 )
-"""Names of :data:`vehicle_pose.losses.LOSSES` (tests/test_loss.py checks they agree)."""
+"""Names of :data:`vehicle_pose.loss.registry.LOSSES` (tests/test_loss.py checks they agree)."""
 OPTIMIZER_NAMES: tuple[str, ...] = ("nelder-mead", "powell", "cma-es")
-"""Names of :data:`vehicle_pose.optimize.OPTIMIZERS`."""
+"""Names of :data:`vehicle_pose.search.optimize.OPTIMIZERS`."""
 PARAMETRIZATION_NAMES: tuple[str, ...] = ("theta", "view")
-"""Names of :data:`vehicle_pose.parametrize.PARAMETRIZATIONS`."""
+"""Names of :data:`vehicle_pose.geometry.parametrize.PARAMETRIZATIONS`."""
 
 
 @dataclass(frozen=True)
@@ -28,14 +28,14 @@ class RegistrationOptions:
     Attributes
     ----------
     loss : str
-        A name from :data:`vehicle_pose.losses.LOSSES`. The default, ``invariant-parts``, is the
+        A name from :data:`vehicle_pose.loss.registry.LOSSES`. The default, ``invariant-parts``, is the
         invariant loss with one indicator channel per material kind of the model (body, glass,
         tyre, wheel, light), so each material gets its own unknown response (method.md §2); on
         a model without material groups it equals ``invariant``. Measured against
         ``invariant`` it registered 65 % of the photoreal cases instead of 55 %
         (docs/benchmarks.md).
     optimizer : str
-        A name from :data:`vehicle_pose.optimize.OPTIMIZERS`.
+        A name from :data:`vehicle_pose.search.optimize.OPTIMIZERS`.
     coarse_to_fine : bool
         First optimise on a reduced photo with a decimated mesh, then at full working size.
     max_size : int
@@ -69,7 +69,7 @@ class RegistrationOptions:
     box_weight : float
         With a start camera and a box, the loss is raised by this times how far the model's
         projection goes beyond the box grown by ``box_tolerance`` of its size, or falls short
-        of it by more than ``box_shortfall`` (:func:`~vehicle_pose.initialize.box_overflow`;
+        of it by more than ``box_shortfall`` (:func:`~vehicle_pose.search.views.box_overflow`;
         going beyond a side on the photo's border is free).
     box_tolerance : float
         How far, as a fraction of the box's size, the projection may pass the box free of cost
@@ -82,7 +82,7 @@ class RegistrationOptions:
     edge_weight : float
         With a start camera, the loss is raised by this times the directional chamfer cost of
         the rendered model's edges against the photo's edges near the foreground
-        (:class:`~vehicle_pose.edges.EdgeLoss`, in [0, 1]): outline, window frames and lights
+        (:class:`~vehicle_pose.loss.edges.EdgeLoss`, in [0, 1]): outline, window frames and lights
         hold the model where reflections in the paint and glass leave the invariant loss
         blind. 0 leaves the loss alone.
     edge_crease : float
@@ -113,7 +113,7 @@ class RegistrationOptions:
         ``"auto"`` (from the start pose), ``"left"`` or ``"right"``: the visible side.
     parametrization : str
         Search coordinates: ``"view"`` (default) or ``"theta"`` (the paper's), see
-        :mod:`vehicle_pose.parametrize`; the paper's theta succeeded on 50 % of the photoreal
+        :mod:`vehicle_pose.geometry.parametrize`; the paper's theta succeeded on 50 % of the photoreal
         cases even with the true mask, the view coordinates on 85 % (docs/benchmarks.md).
     starts : int
         Without a start camera: how many distinct start poses (view search and wheel pairs)
@@ -128,9 +128,9 @@ class RegistrationOptions:
         The view search, the screening and the refinement of the screened poses look at a
         window of the photo: the vehicle's box grown by this fraction of its longer side on
         every side, reduced to their sizes, so a small vehicle is seen at the resolution of a
-        large one (:class:`~vehicle_pose.window.Window`). None: the whole photo.
+        large one (:class:`~vehicle_pose.geometry.window.Window`). None: the whole photo.
     refine_optimizer : str
-        A name from :data:`vehicle_pose.optimize.OPTIMIZERS`: the optimiser of the refinement
+        A name from :data:`vehicle_pose.search.optimize.OPTIMIZERS`: the optimiser of the refinement
         of the screened poses (no start camera). CMA-ES, because near-frontal and near-rear views
         with a short lens leave a simplex stuck in a narrow valley (docs/engine.md).
     refine_evaluations : int
@@ -171,7 +171,7 @@ class RegistrationOptions:
     dolly_pivot : float
         The view coordinates' focal length moves the camera along its line of sight so that
         the image size stays put at this many bounding-sphere radii in front of the model's
-        centre (:class:`~vehicle_pose.parametrize.ViewParams`), about where the visible
+        centre (:class:`~vehicle_pose.geometry.parametrize.ViewParams`), about where the visible
         outline lies. Pivoting at the centre (0) couples focal length and size: on synthetic
         starts with 1.7-1.8 times the true focal length, 4 of 8 ended more than 1 px off
         (the simplex crawls along the diagonal valley); at 0.5 none did (docs/engine.md).

@@ -34,11 +34,11 @@ import numpy as np
 import numpy.typing as npt
 import xxhash
 
-from .files import write_atomic
-from .mesh import Mesh, Part
+from vehicle_pose.files import write_atomic
+from vehicle_pose.model.mesh import Mesh, Part
 
 if TYPE_CHECKING:
-    from .render import Renderer
+    from vehicle_pose.render.renderer import Renderer
 
 __all__ = ["PREPARATION", "ModelStore", "Levels", "default_cache_dir", "default_budgets"]
 
@@ -65,7 +65,7 @@ def default_budgets(n_faces: int) -> list[int]:
     """The face budgets the registration's defaults ask levels of detail for: the view
     search's, the outline's and every level's (powers of two from ``min(4096, min_faces)``
     to the budget of a silhouette filling the largest working image), up to the mesh's size."""
-    from .options import RegistrationOptions
+    from vehicle_pose.registration.options import RegistrationOptions
 
     o = RegistrationOptions()
     low = min(4096, o.min_faces)
@@ -245,7 +245,7 @@ class ModelStore:
         p = Path(path).resolve()
         dirs = [Path(d).resolve() for d in texture_dirs]
         if not p.is_file():
-            from .errors import ModelError
+            from vehicle_pose.errors import ModelError
 
             raise ModelError(f"mesh file {p} does not exist")
         entry = _Entry(self.root / self.key(p, dirs))
@@ -263,7 +263,7 @@ class ModelStore:
             log.warning("prepared model %s is unreadable (%s); preparing it again", entry.folder, exc)
             discard(entry)
         entry = _Entry(entry.folder)
-        from .mesh import load_mesh_recording
+        from vehicle_pose.model.loading import load_mesh_recording
 
         mesh, read, missing = load_mesh_recording(p, texture_dirs=dirs)
         levels = Levels(mesh, entry)
@@ -293,7 +293,7 @@ def _sources_unchanged(manifest: dict[str, Any], path: Path, dirs: Sequence[Path
         if not f.is_file() or _file_hash(f) != s["hash"]:
             return False
     if manifest.get("missing"):
-        from .mesh import resolves
+        from vehicle_pose.model.loading import resolves
 
         if any(resolves(path, dirs, name) for name in manifest["missing"]):
             return False
@@ -358,9 +358,11 @@ class Levels:
             return mesh
 
     def _exterior_key(self, max_faces: int, renderer: Renderer) -> str:
+        from vehicle_pose.render.exterior import exterior_faces
+
         gl = renderer.ctx.info.get("GL_RENDERER", "?")
         level = "full" if max_faces >= self.mesh.n_faces else str(max_faces)
-        args = tuple(type(renderer).exterior.__kwdefaults__.values())  # the pass's own settings
+        args = tuple(exterior_faces.__kwdefaults__.values())  # the pass's own settings
         return f"{level}|{gl}|{args}"
 
     def exterior(self, max_faces: int, mesh: Mesh, renderer: Renderer) -> Mesh:
@@ -372,7 +374,9 @@ class Levels:
             if out is None:
                 out = self._stored("exteriors", key)
                 if out is None:
-                    out = renderer.exterior(mesh)
+                    from vehicle_pose.render.exterior import exterior_faces
+
+                    out = exterior_faces(renderer, mesh)
                     self._store("exteriors", key, out)
                 self._exteriors[key] = out
             return out

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .errors import CameraError
+from vehicle_pose.errors import CameraError
 
 __all__ = ["Camera", "MAX_IMAGE_SIDE", "MAX_MAGNITUDE", "look_at_camera"]
 

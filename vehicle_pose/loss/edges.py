@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from .render import Frame
+from vehicle_pose.render.renderer import Frame
 
 __all__ = ["PhotoEdges", "photo_edges", "EdgeLoss", "ORIENTATIONS"]
 

@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Camera
-from .mesh import Mesh
-from .metadata import WheelGeometry
-from .render import Renderer, headlight
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.model.mesh import Mesh
+from vehicle_pose.model.metadata import WheelGeometry
+from vehicle_pose.render.renderer import Renderer, headlight
 
 __all__ = ["draw_overlay", "encode_image", "save_png"]
 

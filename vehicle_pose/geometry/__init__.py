@@ -1,0 +1,1 @@
+"""Cameras, the paper's pose parameters, the search coordinates and image windows."""

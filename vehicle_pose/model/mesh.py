@@ -1,0 +1,256 @@
+"""Render-ready meshes: material parts, levels of detail and their outlines.
+
+A :class:`Mesh` is a tuple of :class:`Part` in the mesh file's own coordinates (scene
+transforms applied, see :mod:`vehicle_pose.model.loading`). A part knows its material kind
+(body, glass, tyre, wheel, light, other), its albedo (material colour, vertex colours) and,
+where the file has one, its texture.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.errors import EmptyMeshError
+
+if TYPE_CHECKING:
+    import trimesh
+
+# trimesh, cv2 and fast_simplification are imported where they are used: a process that only
+# reads prepared models (vehicle_pose.model.store) never needs them.
+
+__all__ = ["KINDS", "Part", "Mesh", "classify_part", "LUMA"]
+
+log = logging.getLogger(__name__)
+
+KINDS: tuple[str, ...] = ("body", "glass", "tyre", "wheel", "light", "other")
+_KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("glass", ("glass", "window", "windshield", "windscreen", "glazing")),
+    ("tyre", ("tyre", "tire", "rubber")),
+    ("wheel", ("wheel", "rim", "hub")),
+    ("light", ("light", "lamp", "headl", "taill", "indicator")),
+    ("other", ("interior", "seat", "dashboard", "steering")),
+)
+LUMA = np.array([0.299, 0.587, 0.114])
+_uid = itertools.count(1)
+_SIMPLIFY_LOCK = threading.Lock()
+
+
+def classify_part(*names: str | None) -> str:
+    """Material kind of a part from its geometry and material names; 'body' when none match."""
+    text = " ".join(n.lower() for n in names if n)
+    for kind, words in _KEYWORDS:
+        if any(w in text for w in words):
+            return kind
+    return "body"
+
+
+@dataclass(frozen=True, eq=False)
+class Part:
+    """One material group of a mesh, ready for rendering.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64, mesh units, mesh frame
+    normals : (V, 3) float32, unit, mesh frame (sign is irrelevant)
+    faces : (F, 3) uint32
+    uv : (V, 2) float32 or None
+    albedo : (V,) float32, gray reflectance in [0, 1]
+    texture : (h, w, 3) uint8 or None, multiplies the albedo
+    one_sided : bool
+        Every face is wound so that the side seen from outside the model faces the camera
+        (set by :func:`vehicle_pose.render.exterior.exterior_faces`, which found no view that sees
+        its other side): the renderer culls these faces from behind. Otherwise (the default,
+        for meshes as loaded, whose winding is often inconsistent) both sides are drawn.
+    """
+
+    name: str
+    kind: str
+    vertices: npt.NDArray[np.float64]
+    normals: npt.NDArray[np.float32]
+    faces: npt.NDArray[np.uint32]
+    albedo: npt.NDArray[np.float32]
+    uv: npt.NDArray[np.float32] | None = None
+    texture: npt.NDArray[np.uint8] | None = None
+    one_sided: bool = False
+
+    @property
+    def label(self) -> int:
+        """1-based index of the part's kind in :data:`KINDS` (0 is background)."""
+        return KINDS.index(self.kind) + 1
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """A vehicle mesh as a list of parts; ``key`` identifies it for GPU buffer caches."""
+
+    parts: tuple[Part, ...]
+    source: str = ""
+    key: int = field(default_factory=lambda: next(_uid))
+
+    def __post_init__(self) -> None:
+        if self.n_faces == 0:
+            raise EmptyMeshError(f"mesh {self.source or '(in memory)'} has no faces")
+
+    @property
+    def n_faces(self) -> int:
+        return int(sum(len(p.faces) for p in self.parts))
+
+    @property
+    def n_vertices(self) -> int:
+        return int(sum(len(p.vertices) for p in self.parts))
+
+    @cached_property
+    def vertices(self) -> npt.NDArray[np.float64]:
+        """All vertices (N, 3), mesh frame."""
+        return np.concatenate([p.vertices for p in self.parts])
+
+    @cached_property
+    def bounds(self) -> npt.NDArray[np.float64]:
+        """Axis-aligned bounds (2, 3): min and max corner."""
+        v = self.vertices
+        return np.stack([v.min(0), v.max(0)])
+
+    @cached_property
+    def box_corners(self) -> npt.NDArray[np.float64]:
+        """The 8 corners (8, 3) of the axis-aligned bounding box."""
+        lo, hi = self.bounds
+        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+    @cached_property
+    def sphere(self) -> tuple[npt.NDArray[np.float64], float]:
+        """Centre (3,) and radius of a sphere enclosing the mesh."""
+        lo, hi = self.bounds
+        centre = 0.5 * (lo + hi)
+        return centre, float(np.linalg.norm(self.vertices - centre, axis=1).max())
+
+    def sample_points(self, count: int = 2000, seed: int = 0) -> npt.NDArray[np.float64]:
+        """Up to ``count`` vertices (N, 3) chosen at random, for error metrics."""
+        v = self.vertices
+        if len(v) <= count:
+            return v
+        return v[np.random.default_rng(seed).choice(len(v), count, replace=False)]
+
+    def decimated(self, max_faces: int) -> Mesh:
+        """A coarser copy with at most about ``max_faces`` faces; textures folded into albedo.
+
+        The budget is shared so that small parts (wheels, lights) stay whole and the large ones
+        (the body) give up the faces: one ratio for every part reduced a 160-face wheel to 2
+        faces. Coincident vertices are merged first: CAD meshes often come as triangle soups
+        (or are split along creases for shading), and a quadric simplifier cannot collapse the
+        edges of a soup without tearing holes in it.
+        """
+        if self.n_faces <= max_faces:
+            return self
+        import fast_simplification
+        import trimesh
+
+        from vehicle_pose.model.loading import shading_geometry
+
+        budgets = _share_faces([len(p.faces) for p in self.parts], max_faces)
+        parts = []
+        for p, budget in zip(self.parts, budgets):
+            albedo = _mean_albedo(p)
+            if budget >= len(p.faces) or len(p.faces) < 64:
+                parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
+                continue
+            merged_vertices, merged_faces = self._merged(p)
+            with _SIMPLIFY_LOCK:  # the simplifier keeps its mesh in global state
+                pts, tris = fast_simplification.simplify(
+                    merged_vertices, merged_faces, target_reduction=1.0 - budget / len(p.faces),
+                )
+            if len(tris) == 0:
+                continue
+            tm = trimesh.Trimesh(pts, tris, process=False)
+            verts, normals, faces = shading_geometry(tm)
+            parts.append(
+                Part(p.name, p.kind, verts, normals, faces, np.full(len(verts), albedo, np.float32))
+            )
+        return Mesh(tuple(parts), source=f"{self.source} (decimated to {max_faces})")
+
+    def _merged(self, part: Part) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+        """The part's vertices and faces with coincident vertices merged, kept for the next
+        level's decimation (0.6 s a level for a 2M-face mesh)."""
+        cache: dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]] = self.__dict__.setdefault("_merged_cache", {})
+        found = cache.get(id(part))
+        if found is None:
+            import trimesh
+
+            merged = trimesh.Trimesh(part.vertices, part.faces, process=True)
+            found = cache[id(part)] = (np.asarray(merged.vertices, np.float64), np.asarray(merged.faces, np.int64))
+        return found
+
+    def outlines(self, size: int = 256, frame: tuple[npt.NDArray[np.float64], float] | None = None) -> npt.NDArray[np.bool_]:
+        """Orthographic silhouettes (14, size, size) along the 6 axes and 8 diagonals.
+
+        Drawn on the CPU (no OpenGL) within ``frame`` = (centre, radius), the mesh's enclosing
+        sphere by default; :meth:`outline_agreement` compares two meshes on the same frame.
+        """
+        import cv2
+
+        centre, radius = self.sphere if frame is None else frame
+        dirs = [np.eye(3)[i] * s for i in range(3) for s in (1.0, -1.0)]
+        dirs += [np.array(d) / np.sqrt(3.0) for d in itertools.product((1.0, -1.0), repeat=3)]
+        verts = self.vertices - centre
+        offsets = np.cumsum([0] + [len(p.vertices) for p in self.parts])
+        faces = np.concatenate([p.faces.astype(np.int64) + o for p, o in zip(self.parts, offsets)])
+        out = np.zeros((len(dirs), size, size), np.uint8)
+        shift = 4
+        scale = (size / 2.0) / radius * (1 << shift)
+        one = 1 << shift
+        for k, d in enumerate(dirs):
+            a = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
+            a /= np.linalg.norm(a)
+            b = np.cross(d, a)
+            uv = np.stack([verts @ a, verts @ b], axis=1) * scale + (size / 2.0) * one
+            tris = np.round(uv[faces]).astype(np.int32)
+            extent = tris.max(axis=1) - tris.min(axis=1)
+            small = extent.max(axis=1) < one
+            # Triangles under a pixel mark the pixels of their corners (a dense mesh has
+            # millions); the others are filled one call each, as fillPoly on many polygons
+            # fills their overlaps even-odd.
+            px = np.clip(tris[small].reshape(-1, 2) >> shift, 0, size - 1)
+            out[k][px[:, 1], px[:, 0]] = 1
+            for tri in tris[~small]:
+                cv2.fillConvexPoly(out[k], tri, 1, cv2.LINE_8, shift)
+        return out.astype(bool)
+
+    @cached_property
+    def _outlines(self) -> npt.NDArray[np.bool_]:
+        return self.outlines(256)
+
+    def outline_agreement(self, other: Mesh, size: int = 256) -> float:
+        """The lowest IoU of the two meshes' :meth:`outlines` over the 14 directions."""
+        a = self._outlines if size == 256 else self.outlines(size)
+        b = other.outlines(size, frame=self.sphere)
+        inter = (a & b).sum(axis=(1, 2))
+        union = np.maximum((a | b).sum(axis=(1, 2)), 1)
+        return float((inter / union).min())
+
+
+def _share_faces(sizes: Sequence[int], budget: int) -> list[int]:
+    """Faces allowed to each part: an equal share of ``budget``, where a part needs less its
+    own count and the rest shared among the larger parts."""
+    out = [0] * len(sizes)
+    left, remaining = len(sizes), float(budget)
+    for i in sorted(range(len(sizes)), key=lambda i: sizes[i]):
+        out[i] = int(min(sizes[i], remaining / left))
+        remaining -= out[i]
+        left -= 1
+    return out
+
+
+def _mean_albedo(part: Part) -> float:
+    base = float(part.albedo.mean()) if part.albedo.size else 1.0
+    if part.texture is None:
+        return base
+    return base * float((part.texture.reshape(-1, 3) @ LUMA).mean() / 255.0)

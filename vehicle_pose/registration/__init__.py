@@ -1,0 +1,1 @@
+"""Registration: the options, the stages of a registration and the model identification."""

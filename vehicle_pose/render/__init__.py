@@ -1,0 +1,1 @@
+"""Off-screen rendering: the GL context, the renderer, the exterior pass, overlays and synthetic photos."""
