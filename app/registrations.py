@@ -100,7 +100,9 @@ def _explain(exc: ValidationError) -> str:
     parts = []
     for err in exc.errors(include_url=False)[:5]:
         where = ".".join(str(p) for p in err.get("loc", ())) or "options"
-        parts.append(f"{where}: {err.get('msg', 'invalid')}")
+        given = err.get("input")
+        shown = f", not {given!r}" if isinstance(given, (str, int, float, bool)) and len(repr(given)) <= 40 else ""
+        parts.append(f"{where}: {err.get('msg', 'invalid')}{shown}")
     more = len(exc.errors()) - len(parts)
     return "; ".join(parts) + (f" (and {more} more)" if more > 0 else "")
 

@@ -5,45 +5,48 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from vehicle_pose.loss.registry import LOSSES
-from vehicle_pose.search.optimize import OPTIMIZERS
-from vehicle_pose.geometry.parametrize import PARAMETRIZATIONS
+from vehicle_pose.registration.options import RegistrationOptions
 
 Status = Literal["queued", "running", "succeeded", "failed"]
 
 
-class RegistrationOptionsIn(BaseModel):
-    """Engine options a client may set (the ``options`` form field, JSON); defaults are the engine's."""
-
+class _OptionsBase(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    loss: str | None = Field(default=None, json_schema_extra={"enum": sorted(LOSSES)})
-    optimizer: str | None = Field(default=None, json_schema_extra={"enum": sorted(OPTIMIZERS)})
-    parametrization: str | None = Field(default=None, json_schema_extra={"enum": sorted(PARAMETRIZATIONS)})
-    side: Literal["auto", "left", "right"] | None = None
-    color: bool | None = None
-    grabcut: bool | None = None
-    resegment: bool | None = None
-    coarse_to_fine: bool | None = None
-    max_evaluations: int | None = Field(default=None, ge=20, le=5000)
-    starts: int | None = Field(default=None, ge=1, le=12, description="without init_camera: start poses screened")
-    refine: int | None = Field(default=None, ge=1, le=4, description="without init_camera: poses refined at full size")
-    edge_weight: float | None = Field(default=None, ge=0.0, le=10.0,
-                                      description="with init_camera: weight of the edge alignment term (0: none)")
-    box_weight: float | None = Field(default=None, ge=0.0, le=100.0,
-                                     description="with init_camera and bbox: weight of the cost of leaving the box")
-    fit_start_to_box: bool | None = Field(default=None,
-                                          description="with init_camera and bbox: fit the start's place and size to the box")
-
     def engine_kwargs(self) -> dict[str, Any]:
-        """The options that were set, checked against the engine's names."""
-        for name, table in (("loss", LOSSES), ("optimizer", OPTIMIZERS), ("parametrization", PARAMETRIZATIONS)):
-            value = getattr(self, name)
-            if value is not None and value not in table:
-                raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(sorted(table))}")
-        return self.model_dump(exclude_none=True)
+        """The options that were set, by name, checked by the engine's own validation
+        (ValueError naming the field and the reason)."""
+        values = self.model_dump(exclude_none=True)
+        RegistrationOptions.from_flat(values)
+        return values
+
+
+def _options_model() -> type[_OptionsBase]:
+    """The engine's public options (registration/options.py), each optional, with the
+    engine's bounds, choices and help: a new public option appears here by itself."""
+    fields: dict[str, Any] = {}
+    for name, f, spec in RegistrationOptions.specs():
+        if not spec.public:
+            continue
+        kind: Any = type(f.default)
+        if spec.choices is not None:
+            kind = Literal.__getitem__(spec.choices)
+            bounds: dict[str, Any] = {}
+        elif kind is tuple:
+            kind, bounds = list[float], {"max_length": 8}
+        else:
+            bounds = {"ge": spec.low, "le": spec.high}
+        fields[name] = (kind | None, Field(default=None, description=spec.help, **bounds))
+    model: type[_OptionsBase] = create_model(  # type: ignore[call-overload]
+        "RegistrationOptionsIn", __base__=_OptionsBase,
+        __doc__="Engine options a client may set (the ``options`` form field, JSON); defaults are the engine's.",
+        **fields)
+    return model
+
+
+RegistrationOptionsIn = _options_model()
 
 
 class Progress(BaseModel):

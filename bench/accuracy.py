@@ -9,18 +9,16 @@ bench/results/accuracy_<part>.json.
 from __future__ import annotations
 
 import argparse
-import ast
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
-from common import perturbed, photoreal_cases, projection_error, table, write_report
+from common import parse_options, perturbed, photoreal_cases, projection_error, table, write_report
 
 from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.model.library import ModelLibrary
 from vehicle_pose.photo import load_photo
-from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
@@ -112,27 +110,6 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
     return {"rows": rows, "runs": out}
 
 
-def parse_options(pairs: list[str]) -> RegistrationOptions:
-    """RegistrationOptions from KEY=VALUE strings, each value typed like the field's default
-    (tuples as Python literals, e.g. ``focal_starts=(0.6,1.7)``)."""
-    defaults = RegistrationOptions()
-    fields = {}
-    for pair in pairs:
-        key, _, value = pair.partition("=")
-        if not hasattr(defaults, key):
-            raise SystemExit(f"unknown option {key!r}")
-        kind = type(getattr(defaults, key))
-        if kind is bool:
-            fields[key] = value.lower() in ("1", "true", "yes")
-        elif kind is tuple:
-            fields[key] = tuple(ast.literal_eval(value))
-        elif kind is type(None):
-            fields[key] = ast.literal_eval(value)
-        else:
-            fields[key] = kind(value)
-    return dataclasses.replace(defaults, **fields)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--part", default="all", choices=("sweep", "losses", "photoreal", "all"))
@@ -154,7 +131,7 @@ def main() -> None:
             name = "accuracy_photoreal" + ("_hard" if "hard" in args.start else "") + (f"_{args.tag}" if args.tag else "")
             options = parse_options(args.option)
             data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask, use_box=not args.no_box)
-            data["options"] = vars(options)
+            data["options"] = options.flat()
             data["oracle_mask"] = args.oracle_mask
             data["box"] = not args.no_box
             print(write_report(name, data))

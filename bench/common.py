@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import platform
@@ -13,7 +14,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from vehicle_pose import RegistrationOptions
 from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.metrics import projection_error as _projection_error
 from vehicle_pose.render.gl import get_context
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
 
@@ -63,8 +66,7 @@ def write_report(name: str, data: dict) -> Path:
 
 def projection_error(points: np.ndarray, est: Camera, truth: Camera) -> float:
     """Mean vertex projection distance in pixels, scaled to a 640-pixel-wide image."""
-    d = np.linalg.norm(est.project(points) - truth.project(points), axis=1)
-    return float(np.nanmean(d) * 640.0 / truth.width)
+    return _projection_error(points, est, truth, width=640.0)
 
 
 def perturbed(truth: Camera, rng: np.random.Generator, degrees: float) -> Camera:
@@ -96,3 +98,24 @@ def photoreal_cases(shared: Path):
                                 meters_per_unit=entry["meters_per_unit"], texture_dirs=tuple(texture))
             models[entry["id"]] = VehicleModel(replace(m.info, id=entry["id"], name=entry["id"]), m.mesh)
         yield case, gt, models[entry["id"]]
+
+
+def parse_options(pairs: list[str]) -> RegistrationOptions:
+    """RegistrationOptions from KEY=VALUE strings, each value typed like the field's default
+    (tuples as Python literals, e.g. ``focal_starts=(0.6,1.7)``)."""
+    defaults = RegistrationOptions().flat()
+    fields = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        if key not in defaults:
+            raise SystemExit(f"unknown option {key!r}")
+        kind = type(defaults[key])
+        if kind is bool:
+            fields[key] = value.lower() in ("1", "true", "yes")
+        elif kind is tuple:
+            fields[key] = tuple(ast.literal_eval(value))
+        elif kind is type(None):
+            fields[key] = ast.literal_eval(value)
+        else:
+            fields[key] = kind(value)
+    return RegistrationOptions.from_flat(fields)

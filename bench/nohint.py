@@ -19,14 +19,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from accuracy import parse_options
-from common import photoreal_cases, projection_error, table, write_report
+from common import parse_options, photoreal_cases, projection_error, table, write_report
 
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.registration.identify import identify
 from vehicle_pose.model.library import ModelLibrary
 from vehicle_pose.photo import load_photo
-from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, random_framed_view, synthesize
 
@@ -142,16 +141,16 @@ def main() -> None:
     options = parse_options(args.option)
     suffix = f"_{args.tag}" if args.tag else ""
     if args.part in ("synthetic", "all"):
-        print(write_report("nohint_synthetic" + suffix, synthetic(args.cases, options) | {"options": vars(options)}))
+        print(write_report("nohint_synthetic" + suffix, synthetic(args.cases, options) | {"options": options.flat()}))
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
             data = photoreal(args.shared, options, oracle=args.oracle_mask)
-            print(write_report("nohint_photoreal" + suffix, data | {"options": vars(options), "oracle_mask": args.oracle_mask}))
+            print(write_report("nohint_photoreal" + suffix, data | {"options": options.flat(), "oracle_mask": args.oracle_mask}))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")
     if args.part in ("identify", "all"):
         print(write_report("nohint_identify" + suffix, identification(min(args.cases, 10), options)
-                           | {"options": vars(options)}))
+                           | {"options": options.flat()}))
 
 
 if __name__ == "__main__":

@@ -20,15 +20,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from accuracy import parse_options
-from common import RESULTS, table, write_report
+from common import RESULTS, parse_options, table, write_report
 
 from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.search.views import rotation_angle as rotation_error
+from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
 from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.photo import load_photo
-from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.render.renderer import Renderer
 
 WORSE_DEG = 2.0
@@ -177,7 +176,7 @@ def main() -> None:
     options = parse_options(args.option)
     name = "real_" + args.start.removesuffix(".json") + (f"_{args.tag}" if args.tag else "")
     data, sheet = run(args.shared, args.start, options, args.cases, use_box=not args.no_box)
-    data["options"] = vars(options)
+    data["options"] = options.flat()
     data["box"] = not args.no_box
     print(write_report(name, data))
     RESULTS.mkdir(parents=True, exist_ok=True)

@@ -24,20 +24,22 @@ import json
 from pathlib import Path
 
 import numpy as np
-from accuracy import parse_options
-from common import RESULTS, table, write_report
+from common import RESULTS, parse_options, table, write_report
 from real import load_models
 
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.errors import CameraError, PoseError
-from vehicle_pose.search.views import rotation_angle
+from vehicle_pose.metrics import rotation_error
+
 from vehicle_pose.loss.invariant import make_target
-from vehicle_pose.loss.registry import make_loss
+from vehicle_pose.loss.alternatives import make_loss
 from vehicle_pose.search.optimize import NelderMeadRestarts
 from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.photo import load_photo
-from vehicle_pose.registration.pipeline import RegistrationOptions, _resize, _resize_mask, _view_params, register
+from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.geometry.parametrize import ViewParams
+from vehicle_pose.photo import resized, resized_mask
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.segment.grabcut import grabcut_foreground
 
@@ -48,8 +50,8 @@ class Objective:
 
     def __init__(self, work: np.ndarray, mask: np.ndarray, options: RegistrationOptions, renderer: Renderer, mesh) -> None:
         self.loss = make_loss(options.loss, make_target(work, mask, color=options.color))
-        self.edges = EdgeLoss(work, foreground=mask) if options.edge_weight > 0 else None
-        self.weight, self.renderer, self.mesh = options.edge_weight, renderer, mesh
+        self.edges = EdgeLoss(work, foreground=mask) if options.terms.edge_weight > 0 else None
+        self.weight, self.renderer, self.mesh = options.terms.edge_weight, renderer, mesh
 
     def __call__(self, camera: Camera) -> float:
         frame = self.renderer.render(self.mesh, camera)
@@ -59,7 +61,8 @@ class Objective:
 
 def refit_fixed_rotation(objective: Objective, model, camera: Camera, budget: int = 300) -> tuple[Camera, float]:
     """The best place, size and focal length for ``camera``'s rotation (view coordinates 3-6)."""
-    params = _view_params(camera, model, RegistrationOptions.dolly_pivot)
+    centre, radius = model.mesh.sphere
+    params = ViewParams(camera, centre, RegistrationOptions().probes.dolly_pivot * radius)
 
     def f(z: np.ndarray) -> float:
         x = np.concatenate([np.zeros(3), z])
@@ -104,21 +107,21 @@ def main() -> None:
         res = register(photo, model, init_camera=Camera.from_dict(hint), bbox=hint["bbox"], options=options,
                        renderer=renderer)
         H, W = photo.shape[:2]
-        s = min(1.0, options.max_size / max(W, H))
+        s = min(1.0, options.pyramid.max_size / max(W, H))
         Wf, Hf = round(W * s), round(H * s)
-        work = _resize(photo, Wf, Hf)
+        work = resized(photo, Wf, Hf)
         mesh = model.exterior(16384, renderer)
         found = res.camera.scaled(Wf, Hf)
-        own = _resize_mask(res.foreground, Wf, Hf)
+        own = resized_mask(res.foreground, Wf, Hf)
         on_own = Objective(work, own, options, renderer, mesh)
         truth, truth_own = refit_fixed_rotation(on_own, model, annotated(found, R_gt, model.mesh.sphere[0]))
         seeded = grabcut_foreground(work, renderer.render(model.lod(16384), truth).coverage, margin=0.08,
-                                    sure_core=True, iterations=4, max_size=options.max_size)
+                                    sure_core=True, iterations=4, max_size=options.pyramid.max_size)
         on_seeded = Objective(work, seeded, options, renderer, mesh)
         truth2, truth_seeded = refit_fixed_rotation(on_seeded, model, truth)
         row = {
             "case": case.name,
-            "found deg": rotation_angle(found.R, R_gt),
+            "found deg": rotation_error(found.R, R_gt),
             "found, own mask": on_own(found),
             "annotated, own mask": truth_own,
             "found, seeded mask": on_seeded(found),
@@ -142,7 +145,7 @@ def main() -> None:
         "median mask iou": float(np.median([r["mask iou"] for r in rows])),
     }]
     print(table(summary, list(summary[0])))
-    print(write_report(name, {"rows": summary, "runs": rows, "options": vars(options)}))
+    print(write_report(name, {"rows": summary, "runs": rows, "options": options.flat()}))
 
 
 if __name__ == "__main__":

@@ -20,11 +20,12 @@ from common import photoreal_cases, table, write_report
 from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.loss.invariant import make_target
-from vehicle_pose.loss.registry import LOSSES, make_loss
+from vehicle_pose.loss.alternatives import LOSSES, make_loss
 from vehicle_pose.model.loading import load_mesh
 from vehicle_pose.model.metadata import ModelInfo
 from vehicle_pose.photo import load_photo
-from vehicle_pose.registration.pipeline import RegistrationOptions, _face_budget
+from vehicle_pose import RegistrationOptions
+from vehicle_pose.registration.fit import face_budget
 from vehicle_pose.model.procedural import SEDAN, build_car
 from vehicle_pose.render.exterior import exterior_faces
 from vehicle_pose.render.renderer import Frame, Renderer
@@ -46,7 +47,7 @@ def dense_sedan(target_faces: int, tmp: str) -> VehicleModel:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=30)
-    ap.add_argument("--loss", default=RegistrationOptions.loss, choices=sorted(LOSSES),
+    ap.add_argument("--loss", default=RegistrationOptions().loss, choices=sorted(LOSSES),
                     help="the loss timed (default: the registration's default)")
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "bench",
                     help="photoreal cases whose models are timed too, when present")
@@ -59,7 +60,7 @@ def main() -> None:
 
     def time_meshes(name: str, model: VehicleModel, cam: Camera, photo: np.ndarray, mask: np.ndarray) -> None:
         loss = make_loss(args.loss, make_target(photo, mask, color=False))
-        lod = model.lod(_face_budget(float(mask.sum()), options))
+        lod = model.lod(face_budget(float(mask.sum()), options.pyramid))
         for label, mesh in (("full mesh", model.mesh), ("pipeline LOD", exterior_faces(renderer, lod))):
             frame = renderer.render(mesh, cam)
             loss(frame)

@@ -7,7 +7,8 @@ import pytest
 from conftest import view
 
 from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.search.views import box_overflow, fit_to_box, rotation_angle
+from vehicle_pose.metrics import rotation_error
+from vehicle_pose.search.views import box_overflow, fit_to_box
 from vehicle_pose.render.synth import border_crop_camera
 
 
@@ -31,7 +32,7 @@ def test_fit_to_box_recovers_place_and_size_and_keeps_rotation(sedan):
     start = _moved(truth, np.array([0.6, -0.3, 2.5]))  # off to one side and too small
     fitted = fit_to_box(start, points, sedan.mesh.sphere[0], box, rounds=5)
     assert np.abs(_projected_box(fitted, points) - box).max() < 2.0
-    assert rotation_angle(fitted.R, truth.R) < 1e-9 and np.allclose(fitted.K, truth.K)
+    assert rotation_error(fitted.R, truth.R) < 1e-9 and np.allclose(fitted.K, truth.K)
 
 
 def test_a_box_cut_by_the_border_is_matched_by_a_projection_cut_the_same_way(sedan):

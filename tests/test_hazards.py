@@ -10,7 +10,7 @@ from conftest import projection_error, view
 from test_register import perturbed
 
 from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.registration.pipeline import register
+from vehicle_pose import register
 from vehicle_pose.render.synth import HAZARDS, border_crop_camera, synthesize_hazard
 
 pytestmark = pytest.mark.slow

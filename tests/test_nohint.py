@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,9 +12,9 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.cli import main
 from vehicle_pose.errors import ModelError, UnknownModelError
 from vehicle_pose.registration.identify import identify
+from vehicle_pose.metrics import rotation_error
 from vehicle_pose.search.views import (
     distinct,
-    rotation_angle,
     score_cameras,
     view_camera,
     view_search,
@@ -23,7 +22,8 @@ from vehicle_pose.search.views import (
 from vehicle_pose.model.library import LOD_AGREEMENT, ModelLibrary, install_model
 from vehicle_pose.model.mesh import KINDS
 from vehicle_pose.render.overlay import save_png
-from vehicle_pose.registration.pipeline import RegistrationOptions, confidence, register
+from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.registration.credibility import confidence
 from vehicle_pose.segment.region import VehicleRegion, find_vehicle
 from vehicle_pose.render.synth import LIGHTINGS, _background, synthesize
 from vehicle_pose.search.wheels import detect_wheels, wheel_candidates
@@ -140,7 +140,7 @@ def test_wheel_pair_gives_a_start_near_the_truth(library, renderer):
     cands = wheel_candidates(detect_wheels(photo, region), sedan, 640, 480)
     assert cands and all(c.source == "wheels" for c in cands)
     best = score_cameras(photo, region, sedan, cands, renderer)[0]
-    assert rotation_angle(best.camera.R, truth.R) < 20.0
+    assert rotation_error(best.camera.R, truth.R) < 20.0
 
 
 @pytest.mark.parametrize(
@@ -153,7 +153,7 @@ def test_view_search_returns_a_candidate_within_20_degrees(library, renderer, mo
     truth = view(model, azimuth, elevation, focal=900.0, distance=10.0)
     photo, _ = synthesize(model.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=7)
     cands = distinct(view_search(photo, find_vehicle(photo), model, renderer), 4)
-    assert min(rotation_angle(c.camera.R, truth.R) for c in cands) < 20.0
+    assert min(rotation_error(c.camera.R, truth.R) for c in cands) < 20.0
 
 
 @pytest.mark.slow
@@ -169,7 +169,7 @@ def test_registers_without_any_hint(library, renderer, model_id, azimuth, elevat
     d = result.to_dict()
     assert d["failed"] is False and d["start"]["candidates"] and d["checks"]["region_iou"] > 0.9
     # The edge term refines a given start only; the no-hint chain runs on the loss alone.
-    assert RegistrationOptions.edge_weight > 0 and d["options"]["edge_weight"] == 0.0
+    assert RegistrationOptions().terms.edge_weight > 0 and d["options"]["edge_weight"] == 0.0
     assert all(level["objective"] == level["loss"] for level in d["levels"])
 
 
@@ -185,12 +185,12 @@ def test_a_near_rear_view_with_a_short_lens_is_refined_down_its_valley(library, 
     truth = view_camera(hatchback, 179.0, 10.0, 0.0, box, W, H, 0.82 * W)
     photo, _ = synthesize(hatchback.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=5)
     cma = register(photo, hatchback, renderer=renderer)
-    simplex = register(photo, hatchback, renderer=renderer, options=RegistrationOptions(refine_optimizer="nelder-mead"))
+    simplex = register(photo, hatchback, renderer=renderer, options=RegistrationOptions.from_flat(refine_optimizer="nelder-mead"))
     assert projection_error(hatchback, cma.camera, truth) < 2.0 and not cma.failed
     assert projection_error(hatchback, simplex.camera, truth) > 4.0
     assert cma.loss < simplex.loss
-    with pytest.raises(ValueError, match="unknown optimizer"):
-        register(photo, hatchback, renderer=renderer, options=RegistrationOptions(refine_optimizer="bfgs"))
+    with pytest.raises(ValueError, match="unknown refine_optimizer"):
+        register(photo, hatchback, renderer=renderer, options=RegistrationOptions.from_flat(refine_optimizer="bfgs"))
 
 
 @pytest.mark.slow
@@ -198,11 +198,11 @@ def test_a_second_pass_searches_again_and_keeps_the_lower_loss(library, renderer
     hatchback = library.load("hatchback")
     truth = view(hatchback, 230.0, 14.0, focal=500.0, distance=11.0, width=320, height=240)
     photo, _ = synthesize(hatchback.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=12)
-    quick = RegistrationOptions(starts=3, refine=1, max_size=320, screen_size=160)
+    quick = RegistrationOptions.from_flat(starts=3, refine=1, max_size=320, screen_size=160)
     once = register(photo, hatchback, renderer=renderer, options=quick)
     assert "passes" not in once.checks and "second_pass" not in once.timings
     # Every pose is below this confidence, so the second pass always runs.
-    twice = register(photo, hatchback, renderer=renderer, options=replace(quick, min_confidence=1.01))
+    twice = register(photo, hatchback, renderer=renderer, options=quick.replace(min_confidence=1.01))
     assert twice.checks["passes"] == 2 and twice.timings["second_pass"] > 0 and twice.failed
     assert twice.loss <= once.loss and twice.evaluations > once.evaluations
     assert projection_error(hatchback, twice.camera, truth) < 2.0
@@ -213,14 +213,14 @@ def test_a_photo_without_a_vehicle_is_flagged_failed(library, renderer):
     rng = np.random.default_rng(4)
     photo = (np.clip(_background(480, 640, rng), 0, 1) * 255).astype(np.uint8)
     result = register(photo, library.load("sedan"), renderer=renderer,
-                      options=RegistrationOptions(starts=2, refine=1, max_evaluations=150))
+                      options=RegistrationOptions.from_flat(starts=2, refine=1, max_evaluations=150))
     assert result.failed and result.confidence is not None and result.confidence < 0.5
 
 
 @pytest.mark.slow
 def test_identification_picks_the_right_body_type(library, renderer):
     candidates = [library.load(m) for m in ("sedan", "van", "pickup")]
-    options = RegistrationOptions(starts=3, refine=1, max_size=320, screen_size=160)
+    options = RegistrationOptions.from_flat(starts=3, refine=1, max_size=320, screen_size=160)
     for model, azimuth in zip(candidates, (60.0, 230.0, 120.0)):
         truth = view(model, azimuth, 12.0, focal=500.0, distance=11.0, width=320, height=240)
         photo, _ = synthesize(model.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=9)

@@ -14,7 +14,7 @@ from PIL import Image
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 from vehicle_pose.photo import decode_photo, verify_photo
-from vehicle_pose.registration.pipeline import RegistrationOptions
+from vehicle_pose import RegistrationOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -104,7 +104,7 @@ def test_cli_registers_the_shipped_sample(tmp_path):
     model = ModelLibrary().load("sedan")
     truth = Camera.load(ROOT / "examples" / "sedan_truth.json")
     assert projection_error(model, Camera.from_dict(result["camera"]), truth) < 2.0
-    assert result["options"]["edge_weight"] == RegistrationOptions.edge_weight
+    assert result["options"]["edge_weight"] == RegistrationOptions().terms.edge_weight
 
 
 @pytest.mark.slow

@@ -9,7 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import BlankPhotoError, CameraError, PoseError
-from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.geometry.parametrize import ViewParams
+from vehicle_pose.registration.fit import probe_factors
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 pytestmark = pytest.mark.slow
@@ -47,7 +49,7 @@ def test_coarse_to_fine_is_at_least_as_accurate_as_one_level(sedan, renderer):
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=11)
     start = perturbed(truth, 11)
     pyramid = register(photo, sedan, init_camera=start, renderer=renderer)
-    single = register(photo, sedan, init_camera=start, renderer=renderer, options=RegistrationOptions(coarse_to_fine=False))
+    single = register(photo, sedan, init_camera=start, renderer=renderer, options=RegistrationOptions.from_flat(coarse_to_fine=False))
     assert len(pyramid.levels) == 3 and len(single.levels) == 1
     err_pyramid = projection_error(sedan, pyramid.camera, truth)
     assert err_pyramid < 1.0
@@ -58,7 +60,7 @@ def test_result_json_fields(sedan, renderer):
     truth = view(sedan, 120.0, 15.0, width=320, height=240, focal=450.0)
     photo, _ = synthesize(sedan.mesh, truth, renderer=renderer)
     result = register(photo, sedan, init_camera=perturbed(truth, 2, degrees=3.0), renderer=renderer,
-                      options=RegistrationOptions(max_evaluations=60))
+                      options=RegistrationOptions.from_flat(max_evaluations=60))
     d = result.to_dict()
     for key in ("camera", "theta", "loss", "evaluations", "restarts", "seconds", "model", "cam_R_m2c", "cam_t_m2c", "cam_K", "start"):
         assert key in d
@@ -81,7 +83,7 @@ def test_box_only_start_runs_and_says_so(sedan, renderer):
     photo, mask = synthesize(sedan.mesh, truth, renderer=renderer, seed=5)
     ys, xs = np.nonzero(mask)
     result = register(photo, sedan, bbox=[xs.min(), ys.min(), xs.max(), ys.max()], renderer=renderer,
-                      options=RegistrationOptions(max_evaluations=150))
+                      options=RegistrationOptions.from_flat(max_evaluations=150))
     assert result.start_source == "bbox"
     assert result.evaluations > 0 and np.isfinite(result.loss)
 
@@ -113,17 +115,16 @@ def test_alternative_losses_run_through_the_same_pipeline(sedan, renderer, loss)
     photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=6)
     start = perturbed(truth, 6, degrees=2.0, shift=0.01, focal=0.03)
     result = register(photo, sedan, init_camera=start, renderer=renderer,
-                      options=RegistrationOptions(loss=loss, max_evaluations=80))
+                      options=RegistrationOptions.from_flat(loss=loss, max_evaluations=80))
     assert result.options.loss == loss
     assert projection_error(sedan, result.camera, truth) < projection_error(sedan, start, truth) + 2.0
 
 
 def test_dolly_zooms_keep_centre_size_and_orientation(sedan):
-    from vehicle_pose.registration.pipeline import _dolly_zooms
-
     cam = view(sedan, 40.0, 15.0, focal=900.0)
     centre = sedan.mesh.sphere[0]
-    for zoomed, factor in zip(_dolly_zooms(cam, sedan, (0.6, 1.7)), (0.6, 1.7)):
+    for factor in (0.6, 1.7):
+        zoomed = ViewParams(cam, centre).dolly_zoom(factor)
         assert zoomed.focal == pytest.approx(factor * cam.focal)
         np.testing.assert_allclose(zoomed.R, cam.R, atol=1e-12)
         np.testing.assert_allclose(zoomed.project(centre[None]), cam.project(centre[None]), atol=1e-6)
@@ -135,9 +136,7 @@ def test_a_start_with_the_wrong_perspective_is_recovered(sedan, renderer):
     """A wide-angle photo registered from a start with 1.8 times its focal length."""
     truth = view(sedan, 35.0, 12.0, distance=5.5, focal=420.0)
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
-    from vehicle_pose.registration.pipeline import _dolly_zooms
-
-    start = _dolly_zooms(perturbed(truth, 9, degrees=4.0, shift=0.02, focal=0.0), sedan, (1.8,))[0]
+    start = ViewParams(perturbed(truth, 9, degrees=4.0, shift=0.02, focal=0.0), sedan.mesh.sphere[0]).dolly_zoom(1.8)
     assert projection_error(sedan, start, truth) > 5.0
     result = register(photo, sedan, init_camera=start, renderer=renderer)
     assert projection_error(sedan, result.camera, truth) < 1.0
@@ -145,15 +144,13 @@ def test_a_start_with_the_wrong_perspective_is_recovered(sedan, renderer):
 
 
 def test_a_focal_length_outside_the_usual_range_adds_a_probe_to_its_middle(sedan):
-    from vehicle_pose.registration.pipeline import _probe_factors
-
     options = RegistrationOptions()
     usual = view(sedan, 60.0, 10.0, focal=1.5 * 640)
-    assert _probe_factors(usual, options) == list(options.focal_starts)
+    assert probe_factors(usual, options) == list(options.probes.focal_starts)
     for widths in (10.0, 0.4):
         cam = view(sedan, 60.0, 10.0, focal=widths * 640)
-        *same, extra = _probe_factors(cam, options)
-        assert same == list(options.focal_starts)
+        *same, extra = probe_factors(cam, options)
+        assert same == list(options.probes.focal_starts)
         assert cam.focal * extra == pytest.approx(np.sqrt(0.7 * 4.0) * 640)
 
 
@@ -161,9 +158,7 @@ def test_the_papers_nearly_orthographic_start_is_registered(sedan, renderer):
     """The paper's start has f = 10 W; the photo was taken at 1 W."""
     truth = view(sedan, 60.0, 10.0, distance=6.0, focal=640.0)
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=4)
-    from vehicle_pose.registration.pipeline import _dolly_zooms
-
-    start = _dolly_zooms(perturbed(truth, 4, degrees=4.0, shift=0.02, focal=0.0), sedan, (10.0,))[0]
+    start = ViewParams(perturbed(truth, 4, degrees=4.0, shift=0.02, focal=0.0), sedan.mesh.sphere[0]).dolly_zoom(10.0)
     assert start.focal == pytest.approx(10 * truth.width)
     result = register(photo, sedan, init_camera=start, renderer=renderer)
     assert projection_error(sedan, result.camera, truth) < 1.0

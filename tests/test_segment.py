@@ -7,7 +7,7 @@ import pytest
 from conftest import view
 
 from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.registration.pipeline import _box_mask
+from vehicle_pose.registration.segmentation import box_mask
 from vehicle_pose.segment.grabcut import grabcut_foreground
 from vehicle_pose.render.synth import synthesize
 
@@ -40,6 +40,6 @@ def test_the_clients_box_lets_grabcut_claim_the_rest_of_the_vehicle(scene):
     photo, mask, start, box = scene
     H, W = mask.shape
     without = grabcut_foreground(photo, start, margin=0.06)
-    with_box = grabcut_foreground(photo, start, margin=0.06, region=_box_mask(box, W, H, 0.04))
+    with_box = grabcut_foreground(photo, start, margin=0.06, region=box_mask(box, W, H, 0.04))
     assert (mask & ~with_box).sum() < 0.02 * mask.sum()
     assert _iou(with_box, mask) > 0.95 > _iou(without, mask)

@@ -287,16 +287,15 @@ def test_postgresql_migrations_jobs_and_metrics(postgres_url, monkeypatch, tmp_p
 
 
 def test_real_photo_options_reach_the_engine_and_are_bounded():
-    from dataclasses import replace
 
     from app.schemas import RegistrationOptionsIn
-    from vehicle_pose.registration.pipeline import RegistrationOptions
+    from vehicle_pose import RegistrationOptions
 
     kwargs = RegistrationOptionsIn.model_validate_json(
         '{"edge_weight": 0, "box_weight": 2.5, "fit_start_to_box": false}').engine_kwargs()
     assert kwargs == {"edge_weight": 0.0, "box_weight": 2.5, "fit_start_to_box": False}
-    options = replace(RegistrationOptions(), **kwargs)
-    assert (options.edge_weight, options.box_weight, options.fit_start_to_box) == (0.0, 2.5, False)
+    terms = RegistrationOptions.from_flat(kwargs).terms
+    assert (terms.edge_weight, terms.box_weight, terms.fit_start_to_box) == (0.0, 2.5, False)
     for bad in ('{"edge_weight": -1}', '{"box_weight": 1e9}', '{"fit_start_to_box": "maybe"}'):
         with pytest.raises(ValueError):
             RegistrationOptionsIn.model_validate_json(bad)

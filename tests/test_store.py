@@ -17,7 +17,7 @@ import trimesh
 from vehicle_pose.model.library import ModelLibrary, model_from_mesh
 from vehicle_pose.model.loading import load_mesh, oriented_faces
 from vehicle_pose.model.mesh import Mesh
-from vehicle_pose.registration.pipeline import RegistrationOptions, register
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.model.store import ModelStore, default_budgets, default_cache_dir
 from vehicle_pose.render.synth import synthesize
 
@@ -80,7 +80,7 @@ def test_registration_is_identical_with_and_without_the_store(tmp_path, renderer
     truth = view(plain, 35.0, 12.0, width=320, height=240, focal=450.0)
     rgb, _ = synthesize(plain.mesh, truth, renderer=renderer, seed=4)
     start = view(plain, 41.0, 9.0, width=320, height=240, focal=450.0)
-    options = RegistrationOptions(max_evaluations=120, grabcut=False, edge_weight=0.0, focal_starts=())
+    options = RegistrationOptions.from_flat(max_evaluations=120, grabcut=False, edge_weight=0.0, focal_starts=())
     a = register(rgb, plain, init_camera=start, options=options, renderer=renderer)
     b = register(rgb, stored, init_camera=start, options=options, renderer=renderer)
     for x, y in ((a.camera.K, b.camera.K), (a.camera.R, b.camera.R), (a.camera.t, b.camera.t)):

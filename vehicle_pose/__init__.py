@@ -31,8 +31,8 @@ _WHERE = {
     "decode_photo": "photo",
     "load_photo": "photo",
     "RegistrationOptions": "registration.options",
-    "RegistrationResult": "registration.pipeline",
-    "register": "registration.pipeline",
+    "RegistrationResult": "registration.result",
+    "register": "registration.register",
     "ModelStore": "model.store",
     "Theta": "geometry.pose",
     "camera_to_theta": "geometry.pose",
@@ -58,7 +58,8 @@ if TYPE_CHECKING:
     from vehicle_pose.model.mesh import Mesh
     from vehicle_pose.registration.options import RegistrationOptions
     from vehicle_pose.photo import decode_photo, load_photo
-    from vehicle_pose.registration.pipeline import RegistrationResult, register
+    from vehicle_pose.registration.register import register
+    from vehicle_pose.registration.result import RegistrationResult
     from vehicle_pose.geometry.pose import Theta, camera_to_theta, theta_to_camera
     from vehicle_pose.model.store import ModelStore
 

@@ -12,13 +12,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
-
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from vehicle_pose import __version__
 from vehicle_pose.errors import RenderError, VehiclePoseError
 from vehicle_pose.model.metadata import UNITS
-from vehicle_pose.registration.options import LOSS_NAMES, OPTIMIZER_NAMES, PARAMETRIZATION_NAMES, RegistrationOptions
+from vehicle_pose.registration.options import RegistrationOptions
 
 if TYPE_CHECKING:
     from vehicle_pose.model.library import VehicleModel
@@ -54,28 +53,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--forward", default="+x", help="mesh forward axis, for a mesh path (default +x)")
     r.add_argument("--units", default="m", choices=sorted(UNITS), help="mesh units, for a mesh path")
     r.add_argument("--models-dir", help="model library folder (default: this checkout's vehicle_models/)")
-    r.add_argument("--loss", default=RegistrationOptions.loss, choices=sorted(LOSS_NAMES))
-    r.add_argument("--optimizer", default=RegistrationOptions.optimizer, choices=sorted(OPTIMIZER_NAMES))
-    r.add_argument("--parametrization", default="view", choices=PARAMETRIZATION_NAMES,
-                   help="search coordinates: a view perturbation (default) or the paper's theta")
-    r.add_argument("--no-resegment", action="store_true", help="run GrabCut once, from the start pose only")
-    r.add_argument("--no-focal-probes", action="store_true",
-                   help="the second level searches from the first level's pose only, not also from its dolly zooms")
-    r.add_argument("--edge-weight", type=float, default=RegistrationOptions.edge_weight,
-                   help="weight of the edge alignment term (0: the loss alone)")
-    r.add_argument("--box-weight", type=float, default=RegistrationOptions.box_weight,
-                   help="with --init-camera and --bbox: weight of the cost of leaving the box (0: none)")
-    r.add_argument("--no-box-refit", action="store_true",
-                   help="with --init-camera and --bbox: keep the start camera's place and size instead of fitting them to the box")
-    r.add_argument("--side", default="auto", choices=("auto", "left", "right"), help="visible side")
-    r.add_argument("--color", action="store_true", help="score the three colour channels (n = 3)")
-    r.add_argument("--no-grabcut", action="store_true", help="keep the photo's background")
-    r.add_argument("--single-level", action="store_true", help="no coarse-to-fine pyramid")
-    r.add_argument("--max-evaluations", type=int, default=RegistrationOptions.max_evaluations, help="per level")
-    r.add_argument("--starts", type=int, default=RegistrationOptions.starts,
-                   help="without --init-camera: distinct start poses screened")
-    r.add_argument("--refine", type=int, default=RegistrationOptions.refine,
-                   help="without --init-camera: screened poses refined at full size")
+    _add_option_flags(r)
     r.add_argument("--shade", type=float, default=0.0, help="blend the shaded model into the overlay (0..1)")
 
     m = sub.add_parser("models", help="list the model library")
@@ -95,6 +73,31 @@ def _parser() -> argparse.ArgumentParser:
                        "(default $VEHICLE_POSE_CACHE_DIR, else $XDG_CACHE_HOME/vehicle-pose, else ~/.cache/vehicle-pose)")
     r.add_argument("--no-cache", action="store_true", help="prepare the model in memory only, reading and writing no cache")
     return p
+
+
+def _add_option_flags(parser: argparse.ArgumentParser) -> None:
+    """A flag for each public registration option, from its declaration (registration/options.py):
+    a boolean's flag sets the opposite of its default, a flag with a value sets that value."""
+    for name, f, spec in RegistrationOptions.specs():
+        if not spec.public:
+            continue
+        flag = spec.flag or "--" + name.replace("_", "-")
+        if spec.flag_value is not None or isinstance(f.default, bool):
+            const = spec.flag_value if spec.flag_value is not None else not f.default
+            negates = const is False or const == ()
+            parser.add_argument(flag, dest=name, action="store_const", const=const, default=None,
+                                help=f"off: {spec.help}" if negates else spec.help)
+        else:
+            kind = type(f.default)
+            parser.add_argument(flag, dest=name, type=kind, default=None, choices=spec.choices,
+                                metavar=None if spec.choices else kind.__name__.upper(),
+                                help=f"{spec.help} (default {f.default})")
+
+
+def _options_given(args: argparse.Namespace) -> dict[str, Any]:
+    """The registration options set on the command line, by name."""
+    return {name: getattr(args, name) for name, _, spec in RegistrationOptions.specs()
+            if spec.public and getattr(args, name, None) is not None}
 
 
 def _store(args: argparse.Namespace) -> ModelStore | None:
@@ -166,23 +169,7 @@ def _register(args: argparse.Namespace) -> int:
     photo = load_photo(args.photo)
     models = _load_models(args, [args.model])
     init = Camera.load(args.init_camera) if args.init_camera else None
-    options = RegistrationOptions(
-        loss=args.loss,
-        optimizer=args.optimizer,
-        coarse_to_fine=not args.single_level,
-        grabcut=not args.no_grabcut,
-        color=args.color,
-        max_evaluations=args.max_evaluations,
-        side=args.side,
-        parametrization=args.parametrization,
-        resegment=not args.no_resegment,
-        focal_starts=() if args.no_focal_probes else RegistrationOptions.focal_starts,
-        starts=args.starts,
-        refine=args.refine,
-        edge_weight=args.edge_weight,
-        box_weight=args.box_weight,
-        fit_start_to_box=not args.no_box_refit,
-    )
+    options = RegistrationOptions.from_flat(_options_given(args))
     result, data = register_or_identify(photo, models, init_camera=init, bbox=args.bbox, options=options)
     model = result.model
     out = Path(args.out)

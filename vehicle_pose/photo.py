@@ -14,7 +14,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 
-__all__ = ["load_photo", "decode_photo", "verify_photo", "is_gray", "MAX_PIXELS"]
+__all__ = ["load_photo", "decode_photo", "verify_photo", "is_gray", "resized", "resized_mask", "MAX_PIXELS"]
 
 MAX_PIXELS = 50_000_000
 
@@ -96,3 +96,23 @@ def load_photo(path: str | Path, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray
 def is_gray(rgb: npt.NDArray[np.uint8]) -> bool:
     """True when all three channels are equal (a gray photo stored as RGB)."""
     return bool(np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]))
+
+
+def resized(rgb: npt.NDArray[np.uint8], width: int, height: int) -> npt.NDArray[np.uint8]:
+    """The photo (H, W, 3) at ``width`` x ``height`` (area interpolation); itself at its own size."""
+    if (rgb.shape[1], rgb.shape[0]) == (width, height):
+        return rgb
+    import cv2
+
+    return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def resized_mask(mask: npt.NDArray[np.bool_], width: int, height: int) -> npt.NDArray[np.bool_]:
+    """The mask (H, W) at ``width`` x ``height`` (nearest neighbour); itself at its own size."""
+    if (mask.shape[1], mask.shape[0]) == (width, height):
+        return mask
+    import cv2
+
+    out: npt.NDArray[np.bool_] = cv2.resize(mask.astype(np.uint8), (width, height),
+                                            interpolation=cv2.INTER_NEAREST) > 0
+    return out

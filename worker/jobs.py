@@ -111,7 +111,7 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     photo = decode_photo(storage.get(job.photo_key), max_pixels=settings.max_photo_pixels)
     models = [library.load(model_id) for model_id in library.resolve(job.model_id)]
     init = Camera.from_dict(job.init_camera) if job.init_camera else None
-    options = RegistrationOptions(**job.options)
+    options = RegistrationOptions.from_flat(job.options)
     progress = _Progress(job.id, settings.progress_interval_s)
     result, data = register_or_identify(photo, models, init_camera=init, bbox=job.bbox, options=options,
                                         progress=progress)

@@ -21,10 +21,10 @@ import numpy as np
 import numpy.typing as npt
 
 from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.registration.options import PARAMETRIZATION_NAMES
 from vehicle_pose.geometry.pose import Side, SideGeometry, Theta, camera_to_theta, theta_to_camera
+from vehicle_pose.registry import PARAMETRIZATIONS
 
-__all__ = ["Parametrization", "ThetaParams", "ViewParams", "PARAMETRIZATIONS"]
+__all__ = ["Parametrization", "SearchFrame", "ThetaParams", "ViewParams", "make_parametrization"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -41,6 +41,22 @@ class Parametrization(Protocol):
     def camera(self, x: FloatArray) -> Camera:
         """The camera of coordinates x; PoseError when x is out of the domain."""
         ...
+
+
+@dataclass(frozen=True)
+class SearchFrame:
+    """What search coordinates know of the model.
+
+    ``centre`` (3,) and ``radius`` are its bounding sphere (mesh units), ``geometry`` the wheel
+    geometry of the visible ``side``, ``pivot`` where a dolly zoom keeps the image size, in
+    bounding-sphere radii in front of the centre (:class:`ViewParams`).
+    """
+
+    centre: FloatArray
+    radius: float
+    geometry: SideGeometry
+    side: Side
+    pivot: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -110,5 +126,31 @@ class ViewParams:
         R = cv2.Rodrigues(np.asarray(x[:3], dtype=np.float64))[0] @ ref.R
         return Camera(K, R, centre_cam - R @ self.centre, ref.width, ref.height)
 
+    @classmethod
+    def about(cls, reference: Camera, frame: SearchFrame) -> ViewParams:
+        """View coordinates about ``reference``, pivoted as ``frame`` says."""
+        return cls(reference, frame.centre, frame.pivot * frame.radius)
 
-PARAMETRIZATIONS = PARAMETRIZATION_NAMES
+    def dolly_zoom(self, factor: float) -> Camera:
+        """The reference with its focal length times ``factor`` and the depth following: the
+        same centre and orientation in the image and the same size at the pivot, another
+        perspective."""
+        x = np.zeros(7)
+        x[6] = np.log(factor)
+        return self.camera(x)
+
+
+@PARAMETRIZATIONS.register("view")
+def _view(reference: Camera, frame: SearchFrame) -> ViewParams:
+    return ViewParams.about(reference, frame)
+
+
+@PARAMETRIZATIONS.register("theta")
+def _theta(reference: Camera, frame: SearchFrame) -> ThetaParams:
+    return ThetaParams(reference, frame.geometry, frame.side)
+
+
+def make_parametrization(name: str, reference: Camera, frame: SearchFrame) -> Parametrization:
+    """The coordinates called ``name`` about ``reference``; ValueError for an unknown name."""
+    params: Parametrization = PARAMETRIZATIONS.get(name)(reference, frame)
+    return params

@@ -10,7 +10,6 @@ flat-shaded; the renderer turns every normal towards the camera.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 

@@ -14,16 +14,11 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
 from vehicle_pose.errors import EmptyMeshError
-
-if TYPE_CHECKING:
-    import trimesh
 
 # trimesh, cv2 and fast_simplification are imported where they are used: a process that only
 # reads prepared models (vehicle_pose.model.store) never needs them.

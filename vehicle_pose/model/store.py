@@ -67,7 +67,7 @@ def default_budgets(n_faces: int) -> list[int]:
     to the budget of a silhouette filling the largest working image), up to the mesh's size."""
     from vehicle_pose.registration.options import RegistrationOptions
 
-    o = RegistrationOptions()
+    o = RegistrationOptions().pyramid
     low = min(4096, o.min_faces)
     high = max(o.min_faces, o.faces_per_pixel * o.max_size * o.max_size)
     out, b = [], low

@@ -19,7 +19,9 @@ import numpy.typing as npt
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import PoseError
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.registration.pipeline import RegistrationOptions, RegistrationResult, register
+from vehicle_pose.registration.options import RegistrationOptions
+from vehicle_pose.registration.register import register
+from vehicle_pose.registration.result import RegistrationResult
 from vehicle_pose.render.renderer import Renderer
 
 __all__ = ["Identification", "identify", "fit_score", "register_or_identify"]

@@ -1,226 +1,327 @@
-"""The registration's options (a light module: the command line reads its defaults without
-importing the renderer or the optimisers)."""
+"""The registration's options: frozen groups, validated once when they are made.
+
+Every field is declared with :func:`option`, which carries what the command line and the
+service's API need to offer it (help, bounds, choices; ``public`` fields only): the CLI's
+flags and the API's schema are derived from these declarations. Why a default is what it is
+lives in the decision records under ``docs/decisions/``, named in each group's docstring.
+
+This module imports nothing heavy: ``vehicle-pose --help`` reads it.
+
+>>> RegistrationOptions(budgets=Budgets(max_evaluations=150)).budgets.max_evaluations
+150
+>>> RegistrationOptions.from_flat(starts=3, max_size=320).search.starts
+3
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+import math
+import typing
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
-__all__ = ["RegistrationOptions", "WINDOW_MARGIN", "LOSS_NAMES", "OPTIMIZER_NAMES", "PARAMETRIZATION_NAMES"]
+from vehicle_pose.registry import LOSSES, OPTIMIZERS, PARAMETRIZATIONS
+
+__all__ = [
+    "RegistrationOptions", "Pyramid", "Segmentation", "Terms", "Budgets", "Probes", "Search",
+    "OptionSpec", "option", "WINDOW_MARGIN", "SIDES",
+]
 
 WINDOW_MARGIN = 0.3
 """The start-pose searches look at the vehicle's box grown by this fraction of its longer side."""
-
-LOSS_NAMES: tuple[str, ...] = (
-    "invariant", "invariant-paper", "invariant-parts", "correlation", "squared", "silhouette-iou",
-    "mutual-information",
-)
-"""Names of :data:`vehicle_pose.loss.registry.LOSSES` (tests/test_loss.py checks they agree)."""
-OPTIMIZER_NAMES: tuple[str, ...] = ("nelder-mead", "powell", "cma-es")
-"""Names of :data:`vehicle_pose.search.optimize.OPTIMIZERS`."""
-PARAMETRIZATION_NAMES: tuple[str, ...] = ("theta", "view")
-"""Names of :data:`vehicle_pose.geometry.parametrize.PARAMETRIZATIONS`."""
+SIDES: tuple[str, ...] = ("auto", "left", "right")
 
 
 @dataclass(frozen=True)
-class RegistrationOptions:
-    """How to register; the defaults are the paper's method plus coarse-to-fine.
+class OptionSpec:
+    """How one option is offered and checked.
 
-    Attributes
-    ----------
-    loss : str
-        A name from :data:`vehicle_pose.loss.registry.LOSSES`. The default, ``invariant-parts``, is the
-        invariant loss with one indicator channel per material kind of the model (body, glass,
-        tyre, wheel, light), so each material gets its own unknown response (method.md §2); on
-        a model without material groups it equals ``invariant``. Measured against
-        ``invariant`` it registered 65 % of the photoreal cases instead of 55 %
-        (docs/benchmarks.md).
-    optimizer : str
-        A name from :data:`vehicle_pose.search.optimize.OPTIMIZERS`.
-    coarse_to_fine : bool
-        First optimise on a reduced photo with a decimated mesh, then at full working size.
-    max_size : int
-        Longer side (pixels) of the finest working image; larger photos are reduced.
-    coarse_sizes : tuple of int
-        Longer sides of the coarse levels, coarsest first; those not well below the working
-        size are skipped.
-    faces_per_pixel : float
-        Level of detail: each level renders a decimation of the mesh with about this many
-        faces per pixel of the start silhouette (rounded up to a power of two, at least
-        ``min_faces``); a triangle of a few pixels changes the loss no more than pixel
-        quantisation does, and :meth:`VehicleModel.lod` keeps each level's outline.
-    min_faces : int
-        Smallest face budget of a level.
-    max_pixels : int
-        When positive, the finest level is reduced until the start silhouette covers at most
-        this many pixels: an evaluation costs in proportion to the silhouette's area. Off by
-        default: at 40000 the photoreal cases registered as well and faster, but the
-        synthetic sub-pixel cases ended 1.6 px off instead of below 1 px.
-    grabcut : bool
-        Remove the background with GrabCut seeded by the start pose.
-    grabcut_margin : float
-        GrabCut seed margin, fraction of the start silhouette's diagonal.
-    box_margin : float
-        With a start camera and a box, GrabCut may also claim the box grown by this fraction
-        of its diagonal: a rough start pose often leaves part of the vehicle outside its
-        grown silhouette, and GrabCut would call that part certain background.
-    fit_start_to_box : bool
-        With a start camera and a box, first move and scale the start (rotation and focal
-        length kept) so that the model's projection, cut to the photo, fills the box.
-    box_weight : float
-        With a start camera and a box, the loss is raised by this times how far the model's
-        projection goes beyond the box grown by ``box_tolerance`` of its size, or falls short
-        of it by more than ``box_shortfall`` (:func:`~vehicle_pose.search.views.box_overflow`;
-        going beyond a side on the photo's border is free).
-    box_tolerance : float
-        How far, as a fraction of the box's size, the projection may pass the box free of cost
-        (an annotated box is loose by a few pixels, a CAD model not exactly the car).
-    box_shortfall : float or None
-        The box term also counts how far a side of the projection falls short of the box's by
-        more than this fraction of its size (None: not at all): a model that fills less of the
-        box than that has shrunk inside the vehicle, onto a panel or the beltline. Loose boxes
-        stay free: the tolerance is three times ``box_tolerance``.
-    edge_weight : float
-        With a start camera, the loss is raised by this times the directional chamfer cost of
-        the rendered model's edges against the photo's edges near the foreground
-        (:class:`~vehicle_pose.loss.edges.EdgeLoss`, in [0, 1]): outline, window frames and lights
-        hold the model where reflections in the paint and glass leave the invariant loss
-        blind. 0 leaves the loss alone.
-    edge_crease : float
-        Change of a camera-space normal component between neighbouring pixels that makes a
-        model edge of the edge term (0.6: a crease of about 35 degrees).
-    resegment : bool
-        Run GrabCut again after each coarse level, seeded by that level's pose with
-        ``resegment_margin`` and its shrunk silhouette as certain foreground: a better pose
-        seeds a better mask.
-    resegment_margin : float
-    resegment_iterations : int
-        GrabCut iterations of a resegmentation (the first segmentation runs 4): seeded by a
-        pose within a few pixels and with a certain-foreground core, two iterations registered
-        the photoreal cases as well as four (100 %, median 0.77 px against 0.75) and took 0.15 s
-        less per photo (docs/benchmarks.md).
-    color : bool
-        Score colour photos with n = 3 channels; by default the photo's luminance is scored
-        (n = 1, the paper's setting); docs/benchmarks.md compares the two.
-    max_evaluations : int
-        Loss evaluations allowed per level (but the finest, see ``fine_evaluations``).
-    fine_evaluations : int
-        Loss evaluations allowed at the finest level when coarser levels ran before it, and at
-        the final level of a registration without a start camera: it starts within a pixel or
-        two and polishes. On the photoreal cases 150 registered as well as 400; on the
-        synthetic sub-pixel cases the error still falls with more (one case: 1.03 px at 150,
-        0.57 at 250, 0.47 at 400), hence 250.
-    side : str
-        ``"auto"`` (from the start pose), ``"left"`` or ``"right"``: the visible side.
-    parametrization : str
-        Search coordinates: ``"view"`` (default) or ``"theta"`` (the paper's), see
-        :mod:`vehicle_pose.geometry.parametrize`; the paper's theta succeeded on 50 % of the photoreal
-        cases even with the true mask, the view coordinates on 85 % (docs/benchmarks.md).
-    starts : int
-        Without a start camera: how many distinct start poses (view search and wheel pairs)
-        are screened on a reduced photo.
-    refine : int
-        How many of the best distinct screened poses are refined at full size.
-    screen_size : int
-        Longer side of the photo for screening (one level).
-    screen_evaluations : int
-        Loss evaluations allowed per screened start.
-    window_margin : float or None
-        The view search, the screening and the refinement of the screened poses look at a
-        window of the photo: the vehicle's box grown by this fraction of its longer side on
-        every side, reduced to their sizes, so a small vehicle is seen at the resolution of a
-        large one (:class:`~vehicle_pose.geometry.window.Window`). None: the whole photo.
-    refine_optimizer : str
-        A name from :data:`vehicle_pose.search.optimize.OPTIMIZERS`: the optimiser of the refinement
-        of the screened poses (no start camera). CMA-ES, because near-frontal and near-rear views
-        with a short lens leave a simplex stuck in a narrow valley (docs/engine.md).
-    refine_evaluations : int
-        Loss evaluations allowed per refined screened pose.
-    second_pass : bool
-        When the pose found without a start camera is not credible, search again with the
-        foreground segmented around it as the vehicle's region, and keep the lower loss. On
-        the photoreal cases it raised no-hint success from 75 to 90 % (docs/benchmarks.md).
-    wheels : bool
-        Add start poses from matched wheel ellipses to those of the view search.
-    start_focals : tuple of float
-        Focal lengths (image widths) at which the best start is screened again besides its
-        own, refitted to the region: the view search assumes 1.5 W, photos range from a strong
-        perspective (0.8 W) to a long lens.
-    region_borders : tuple of (float, float)
-        With no hint at all, the vehicle's region is found by GrabCut from a rectangle this far
-        (fractions of width and height) inside the photo's border, once per entry; the region
-        whose best search view fits it best is used. The further rectangles are tried only
-        when the first region's best view scores above ``region_fit``. (Dropping a narrower
-        region that reaches its rectangle, as cut, lost 3 of 20 photoreal cases.)
-    region_fit : float
-        View-search score (1 - IoU + loss / max) under which the first region is kept as it is.
-    min_confidence : float
-        A pose found without a start camera whose confidence is lower is flagged ``failed``.
-    focal_starts : tuple of float
-        The second coarse-to-fine level searches from the first level's pose and from its
-        dolly zooms by these factors (the same centre, size and orientation in the
-        image, the focal length times the factor) on the same mask, ``focal_evaluations``
-        evaluations each; a probe that ends lower than the main search is searched on. A rough
-        start's perspective is what the simplex corrects least (docs/engine.md). Empty: the
-        paper's single search.
-    focal_evaluations : int
-    focal_range : (float, float)
-        Focal lengths (image widths) of most photos: when the first level ends outside this
-        range (the paper's start has f = 10 W), the probes also include a dolly zoom to its
-        geometric middle (about 1.7 W). From the photoreal cases' hard starts (f = 10 W,
-        15-30 degrees off) it raised success from 10 % to 50 % (docs/benchmarks.md).
-    dolly_pivot : float
-        The view coordinates' focal length moves the camera along its line of sight so that
-        the image size stays put at this many bounding-sphere radii in front of the model's
-        centre (:class:`~vehicle_pose.geometry.parametrize.ViewParams`), about where the visible
-        outline lies. Pivoting at the centre (0) couples focal length and size: on synthetic
-        starts with 1.7-1.8 times the true focal length, 4 of 8 ended more than 1 px off
-        (the simplex crawls along the diagonal valley); at 0.5 none did (docs/engine.md).
-    probe_margin : float
-        A probe is searched on when it ends below the main search's loss times
-        ``1 + probe_margin``: a probe stops after ``focal_evaluations``, short of where it would
-        settle, so a probe that nearly ties the main search is often in the better basin.
+    ``low`` and ``high`` bound a number (each entry of a tuple); ``choices`` lists the values of
+    a name. A ``public`` option is a CLI flag and a field of the API's ``options``: ``flag`` is
+    its CLI form, by default ``--name-with-dashes``; a flag of a boolean sets the opposite of the
+    default, a flag with ``flag_value`` sets that value.
     """
 
-    loss: str = "invariant-parts"
-    optimizer: str = "nelder-mead"
-    coarse_to_fine: bool = True
-    max_size: int = 800
-    coarse_sizes: tuple[int, ...] = (160, 320)
-    faces_per_pixel: float = 0.5
-    min_faces: int = 8192
-    grabcut: bool = True
-    grabcut_margin: float = 0.12
-    box_margin: float = 0.04
-    fit_start_to_box: bool = True
-    box_weight: float = 1.0
-    box_tolerance: float = 0.05
-    box_shortfall: float | None = 0.15
-    edge_weight: float = 0.5
-    edge_crease: float = 0.6
-    resegment: bool = True
-    resegment_margin: float = 0.08
-    resegment_iterations: int = 2
-    color: bool = False
-    max_evaluations: int = 400
-    max_pixels: int = 0
-    side: str = "auto"
-    parametrization: str = "view"
-    starts: int = 4
-    refine: int = 2
-    screen_size: int = 200
-    screen_evaluations: int = 300
-    window_margin: float | None = WINDOW_MARGIN
-    refine_optimizer: str = "cma-es"
-    refine_evaluations: int = 1000
-    second_pass: bool = True
-    wheels: bool = True
-    start_focals: tuple[float, ...] = (0.8, 3.0)
-    region_borders: tuple[tuple[float, float], ...] = ((0.08, 0.1), (0.18, 0.2), (0.28, 0.3))
-    region_fit: float = 0.3
-    min_confidence: float = 0.5
-    focal_starts: tuple[float, ...] = (0.6, 1.7)
-    focal_evaluations: int = 150
-    focal_range: tuple[float, float] = (0.7, 4.0)
-    fine_evaluations: int = 250
-    dolly_pivot: float = 0.5
-    probe_margin: float = 0.1
+    help: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] | None = None
+    public: bool = False
+    flag: str | None = None
+    flag_value: Any = None
+
+
+def option(default: Any, help: str, **spec: Any) -> Any:
+    """A dataclass field with its :class:`OptionSpec` as metadata."""
+    return field(default=default, metadata={"spec": OptionSpec(help, **spec)})
+
+
+def _check(owner: object) -> None:
+    """ValueError naming the field and the reason when a value is out of its bounds or choices."""
+    hints = typing.get_type_hints(type(owner))
+    for f in dataclasses.fields(owner):  # type: ignore[arg-type]
+        spec = f.metadata.get("spec")
+        value = getattr(owner, f.name)
+        if spec is None:
+            if not isinstance(value, hints[f.name]):
+                raise ValueError(f"{f.name} must be a {hints[f.name].__name__}, not {value!r}")
+            continue
+        _check_value(f.name, value, f.default, hints[f.name], spec)
+
+
+def _check_value(name: str, value: Any, default: Any, kind: Any, spec: OptionSpec) -> None:
+    if value is None:
+        if type(None) not in typing.get_args(kind):
+            raise ValueError(f"{name} may not be None")
+        return
+    if spec.choices is not None:
+        if value not in spec.choices:
+            raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(spec.choices)}")
+        return
+    if isinstance(default, bool) or bool in typing.get_args(kind):
+        if not isinstance(value, bool):
+            raise ValueError(f"{name} must be true or false, not {value!r}")
+        return
+    if isinstance(default, tuple):
+        if not isinstance(value, tuple):
+            raise ValueError(f"{name} must be a tuple, not {value!r}")
+        numbers = [v for entry in value for v in (entry if isinstance(entry, tuple) else (entry,))]
+    else:
+        numbers = [value]
+    for v in numbers:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"{name} must be a number, not {v!r}")
+        if isinstance(default, int) and not isinstance(default, bool) and not isinstance(v, int):
+            raise ValueError(f"{name} must be a whole number, not {v!r}")
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be a finite number, not {v!r}")
+        if (spec.low is not None and v < spec.low) or (spec.high is not None and v > spec.high):
+            bounds = f"in [{spec.low}, {spec.high}]" if spec.high is not None else f"at least {spec.low}"
+            raise ValueError(f"{name} must be {bounds}, not {v!r}")
+
+
+def _tupled(value: Any) -> Any:
+    """Lists (as JSON gives them) as tuples, nested ones too."""
+    return tuple(_tupled(v) for v in value) if isinstance(value, list) else value
+
+
+class _Group:
+    """Checks the fields of an option group when it is made."""
+
+    def __post_init__(self) -> None:
+        _check(self)
+
+
+@dataclass(frozen=True)
+class Pyramid(_Group):
+    """The coarse-to-fine levels (``docs/decisions/0001-coarse-to-fine.md``).
+
+    The search runs on each of ``coarse_sizes`` (longer side, pixels; those not well below the
+    working size are skipped), then at the working size, at most ``max_size``. Each level renders
+    a decimation of the mesh with about ``faces_per_pixel`` faces per pixel of the start
+    silhouette, rounded up to a power of two and at least ``min_faces``. With ``max_pixels``
+    positive the working size is reduced until the start silhouette covers at most that many
+    pixels.
+    """
+
+    coarse_to_fine: bool = option(True, "run the coarse levels before the working size", public=True,
+                                  flag="--single-level")
+    max_size: int = option(800, "longer side of the working photo (pixels)", low=16)
+    coarse_sizes: tuple[int, ...] = option((160, 320), "longer sides of the coarse levels, coarsest first", low=8)
+    faces_per_pixel: float = option(0.5, "faces per pixel of the start silhouette at each level", low=1e-6)
+    min_faces: int = option(8192, "smallest face budget of a level", low=4)
+    max_pixels: int = option(0, "when positive, the most pixels the start silhouette may cover", low=0)
+
+
+@dataclass(frozen=True)
+class Segmentation(_Group):
+    """GrabCut (``docs/decisions/0004-resegmentation.md``).
+
+    The first mask is seeded by the start silhouette grown by ``grabcut_margin`` of its diagonal
+    (and, with a box, the box grown by ``box_margin``); after each coarse level GrabCut runs
+    again (``resegment``), seeded by that level's pose grown by ``resegment_margin``, its shrunk
+    silhouette certain foreground, for ``resegment_iterations`` iterations.
+    """
+
+    grabcut: bool = option(True, "remove the background with GrabCut", public=True, flag="--no-grabcut")
+    grabcut_margin: float = option(0.12, "seed margin of the first GrabCut (silhouette diagonals)", low=0.0, high=1.0)
+    box_margin: float = option(0.04, "how far beyond the client's box GrabCut may claim the vehicle", low=0.0, high=1.0)
+    resegment: bool = option(True, "run GrabCut again after each coarse level", public=True, flag="--no-resegment")
+    resegment_margin: float = option(0.08, "seed margin of a resegmentation (silhouette diagonals)", low=0.0, high=1.0)
+    resegment_iterations: int = option(2, "GrabCut iterations of a resegmentation", low=1, high=20)
+
+
+@dataclass(frozen=True)
+class Terms(_Group):
+    """What joins the loss when a start camera is given (``docs/decisions/0006-real-photo-terms.md``).
+
+    With a box, the start is first moved and scaled to fill it (``fit_start_to_box``), and the
+    objective is raised by ``box_weight`` times how far the projection leaves the box grown by
+    ``box_tolerance`` of its size, or falls short of it by more than ``box_shortfall``
+    (:func:`~vehicle_pose.search.views.box_overflow`). The edge term adds ``edge_weight`` times
+    the directional chamfer cost of the model's edges (normal creases above ``edge_crease``)
+    against the photo's (:class:`~vehicle_pose.loss.edges.EdgeLoss`). The search without a start
+    camera runs without the edge term (``docs/decisions/0007-no-hint-search.md``).
+    """
+
+    fit_start_to_box: bool = option(True, "with a start camera and a box: fit the start's place and size to the box",
+                                    public=True, flag="--no-box-refit")
+    box_weight: float = option(1.0, "with a start camera and a box: weight of the cost of leaving the box (0: none)",
+                               low=0.0, high=100.0, public=True)
+    box_tolerance: float = option(0.05, "how far the projection may pass the box free of cost (box sizes)",
+                                  low=0.0, high=1.0)
+    box_shortfall: float | None = option(0.15, "how far short of the box a side may fall free of cost "
+                                         "(box sizes; None: any)", low=0.0, high=1.0)
+    edge_weight: float = option(0.5, "with a start camera: weight of the edge alignment term (0: the loss alone)",
+                                low=0.0, high=10.0, public=True)
+    edge_crease: float = option(0.6, "change of a normal component between pixels that makes a model edge",
+                                low=0.0, high=2.0)
+
+
+@dataclass(frozen=True)
+class Budgets(_Group):
+    """Loss evaluations per search (``docs/decisions/0001-coarse-to-fine.md``).
+
+    ``max_evaluations`` per level, but ``fine_evaluations`` at the working size after coarser
+    levels (it starts within a pixel or two); ``focal_evaluations`` per perspective probe;
+    ``screen_evaluations`` per screened start and ``refine_evaluations`` per refined pose of the
+    search without a start camera.
+    """
+
+    max_evaluations: int = option(400, "loss evaluations per level", low=20, high=5000, public=True)
+    fine_evaluations: int = option(250, "loss evaluations at the working size after coarser levels", low=1)
+    focal_evaluations: int = option(150, "loss evaluations per perspective probe", low=1)
+    screen_evaluations: int = option(300, "without a start camera: loss evaluations per screened start", low=1)
+    refine_evaluations: int = option(1000, "without a start camera: loss evaluations per refined pose", low=1)
+
+
+@dataclass(frozen=True)
+class Probes(_Group):
+    """Perspective probes (``docs/decisions/0005-perspective-probes.md``).
+
+    The second level also searches from dolly zooms of the first level's pose by
+    ``focal_starts`` (and, when its focal length is outside ``focal_range`` image widths, one to
+    the range's geometric middle), on the same mask; a probe that ends below the main search's
+    loss times ``1 + probe_margin`` is searched on. ``dolly_pivot`` is where the view
+    coordinates' focal length keeps the image size (bounding-sphere radii in front of the
+    centre, ``docs/decisions/0003-view-coordinates.md``).
+    """
+
+    focal_starts: tuple[float, ...] = option((0.6, 1.7), "focal factors of the perspective probes", low=1e-3,
+                                             public=True, flag="--no-focal-probes", flag_value=())
+    focal_range: tuple[float, float] = option((0.7, 4.0), "focal lengths of most photos (image widths)", low=1e-3)
+    dolly_pivot: float = option(0.5, "dolly zoom pivot (bounding-sphere radii in front of the centre)", low=0.0)
+    probe_margin: float = option(0.1, "a probe within this share of the main search's loss is searched on", low=0.0)
+
+
+@dataclass(frozen=True)
+class Search(_Group):
+    """The search without a start camera (``docs/decisions/0007-no-hint-search.md``).
+
+    The vehicle's region is found by GrabCut from rectangles ``region_borders`` inside the
+    photo's border (the further ones only when the first region's best view scores above
+    ``region_fit``); ``starts`` distinct start poses (view search, ``wheels`` pairs, and the
+    best at ``start_focals`` image widths) are screened at ``screen_size`` pixels on a window of
+    the box grown by ``window_margin`` (None: the whole photo); the best ``refine`` are refined
+    with ``refine_optimizer``. A pose whose confidence is below ``min_confidence`` is flagged
+    failed (``docs/decisions/0008-confidence.md``); when it is, a ``second_pass`` searches again
+    in the foreground segmented around it.
+    """
+
+    starts: int = option(4, "without a start camera: distinct start poses screened", low=1, high=12, public=True)
+    refine: int = option(2, "without a start camera: screened poses refined at full size", low=1, high=4,
+                         public=True)
+    screen_size: int = option(200, "longer side of the photo for screening (pixels)", low=16)
+    window_margin: float | None = option(WINDOW_MARGIN, "window around the vehicle's box (longer sides; None: "
+                                         "the whole photo)", low=0.0)
+    refine_optimizer: str = option("cma-es", "optimiser of the refinement of screened poses",
+                                   choices=OPTIMIZERS.names)
+    second_pass: bool = option(True, "search again around a pose that is not credible")
+    wheels: bool = option(True, "add start poses from matched wheel ellipses")
+    start_focals: tuple[float, ...] = option((0.8, 3.0), "focal lengths (image widths) the best start is also "
+                                             "screened at", low=1e-3)
+    region_borders: tuple[tuple[float, float], ...] = option(
+        ((0.08, 0.1), (0.18, 0.2), (0.28, 0.3)), "GrabCut rectangles of the region search (fractions of W, H "
+        "inside the border)", low=0.0, high=0.49)
+    region_fit: float = option(0.3, "view-search score under which the first region is kept", low=0.0)
+    min_confidence: float = option(0.5, "confidence under which a pose found without a start camera fails",
+                                   low=0.0)
+
+
+_GROUPS: dict[str, type[_Group]] = {
+    "pyramid": Pyramid, "segmentation": Segmentation, "terms": Terms, "budgets": Budgets, "probes": Probes,
+    "search": Search,
+}
+
+
+@dataclass(frozen=True)
+class RegistrationOptions(_Group):
+    """How to register; the defaults are the paper's method with the measured changes of
+    ``docs/decisions/``.
+
+    ``loss`` is a name of :data:`~vehicle_pose.registry.LOSSES` (``invariant-parts``: one
+    unknown response per material kind, ``docs/decisions/0002-parts-loss.md``), ``optimizer``
+    of :data:`~vehicle_pose.registry.OPTIMIZERS`, ``parametrization`` of
+    :data:`~vehicle_pose.registry.PARAMETRIZATIONS` (``docs/decisions/0003-view-coordinates.md``);
+    ``side`` is the visible side (``auto``: from the start pose); ``color`` scores the three
+    colour channels instead of the luminance. The groups are documented on their classes.
+
+    Every field is checked when the options are made: ValueError names the field and why.
+    """
+
+    loss: str = option("invariant-parts", "loss to minimise", choices=LOSSES.names, public=True)
+    optimizer: str = option("nelder-mead", "optimiser", choices=OPTIMIZERS.names, public=True)
+    parametrization: str = option("view", "search coordinates: a view perturbation or the paper's theta",
+                                  choices=PARAMETRIZATIONS.names, public=True)
+    side: str = option("auto", "visible side", choices=SIDES, public=True)
+    color: bool = option(False, "score the three colour channels (n = 3)", public=True)
+    pyramid: Pyramid = field(default_factory=Pyramid)
+    segmentation: Segmentation = field(default_factory=Segmentation)
+    terms: Terms = field(default_factory=Terms)
+    budgets: Budgets = field(default_factory=Budgets)
+    probes: Probes = field(default_factory=Probes)
+    search: Search = field(default_factory=Search)
+
+    GROUPS: ClassVar[Mapping[str, type[_Group]]] = _GROUPS
+
+    @classmethod
+    def specs(cls) -> Iterator[tuple[str, dataclasses.Field[Any], OptionSpec]]:
+        """Every option as ``(flat name, field, spec)``: the top-level ones, then each group's."""
+        for f in dataclasses.fields(cls):
+            if "spec" in f.metadata:
+                yield f.name, f, f.metadata["spec"]
+        for group in _GROUPS.values():
+            for f in dataclasses.fields(group):
+                yield f.name, f, f.metadata["spec"]
+
+    @classmethod
+    def from_flat(cls, values: Mapping[str, Any] | None = None, /, **more: Any) -> RegistrationOptions:
+        """Options from flat names (``max_size=320``) put into their groups; ValueError for an
+        unknown name (the CLI, the API and the benchmarks speak flat names)."""
+        return cls().replace(**{**(values or {}), **more})
+
+    def replace(self, **values: Any) -> RegistrationOptions:
+        """A copy with the options named by flat names changed (and checked)."""
+        where = {name: group for group, kind in _GROUPS.items() for name in (f.name for f in dataclasses.fields(kind))}
+        top: dict[str, Any] = {}
+        groups: dict[str, dict[str, Any]] = {}
+        for name, value in values.items():
+            value = _tupled(value)
+            if name in where:
+                groups.setdefault(where[name], {})[name] = value
+            elif name in {f.name for f in dataclasses.fields(self)} and name not in _GROUPS:
+                top[name] = value
+            else:
+                raise ValueError(f"unknown option {name!r}")
+        for group, changed in groups.items():
+            top[group] = dataclasses.replace(getattr(self, group), **changed)
+        return dataclasses.replace(self, **top)
+
+    def flat(self) -> dict[str, Any]:
+        """Every option by its flat name (the result JSON's ``options``)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in _GROUPS}
+        for group in _GROUPS:
+            out |= dataclasses.asdict(getattr(self, group))
+        return out

@@ -16,6 +16,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import minimize
 
+from vehicle_pose.registry import OPTIMIZERS
+
 
 def _cma():  # type: ignore[no-untyped-def]
     """The ``cma`` package, imported on first use (0.5 s: it loads scipy.stats), so that a
@@ -28,7 +30,7 @@ def _cma():  # type: ignore[no-untyped-def]
     return cma
 
 
-__all__ = ["OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "OPTIMIZERS"]
+__all__ = ["OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "make_optimizer"]
 
 FloatArray = npt.NDArray[np.float64]
 Objective = Callable[[FloatArray], float]
@@ -265,8 +267,12 @@ class CMAES:
         return counted.result()
 
 
-OPTIMIZERS: dict[str, Callable[[], Optimizer]] = {
-    "nelder-mead": NelderMeadRestarts,
-    "powell": Powell,
-    "cma-es": CMAES,
-}
+OPTIMIZERS.register("nelder-mead")(NelderMeadRestarts)
+OPTIMIZERS.register("powell")(Powell)
+OPTIMIZERS.register("cma-es")(CMAES)
+
+
+def make_optimizer(name: str) -> Optimizer:
+    """A fresh optimiser called ``name``; ValueError for an unknown name."""
+    optimizer: Optimizer = OPTIMIZERS.get(name)()
+    return optimizer

@@ -17,11 +17,12 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.metrics import rotation_error
 from vehicle_pose.registration.options import WINDOW_MARGIN
 from vehicle_pose.errors import CameraError
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.loss.invariant import InvariantLoss, make_target
-from vehicle_pose.loss.registry import SilhouetteIoULoss
+from vehicle_pose.loss.alternatives import SilhouetteIoULoss
 from vehicle_pose.model.metadata import parse_axis
 from vehicle_pose.segment.region import VehicleRegion
 from vehicle_pose.render.renderer import Renderer
@@ -39,7 +40,6 @@ __all__ = [
     "score_cameras",
     "view_search",
     "distinct",
-    "rotation_angle",
     "WINDOW_MARGIN",
 ]
 
@@ -91,12 +91,6 @@ class SearchGrid:
     rolls: tuple[float, ...] = (-6.0, 0.0, 6.0)
     focal: float = 1.5
     """Focal length of the search views, in image widths (about a 50 mm lens on full frame)."""
-
-
-def rotation_angle(a: FloatArray, b: FloatArray) -> float:
-    """Angle in degrees of the rotation between two rotation matrices."""
-    c = (np.trace(a @ b.T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box, *, rounds: int = 3,
@@ -244,7 +238,7 @@ def distinct(candidates: Sequence[Candidate], count: int, *, min_angle: float = 
     """The best ``count`` candidates whose rotations differ pairwise by at least ``min_angle``."""
     kept: list[Candidate] = []
     for cand in sorted(candidates, key=lambda c: c.score):
-        if all(rotation_angle(cand.camera.R, k.camera.R) >= min_angle for k in kept):
+        if all(rotation_error(cand.camera.R, k.camera.R) >= min_angle for k in kept):
             kept.append(cand)
             if len(kept) == count:
                 break

@@ -1,4 +1,5 @@
-"""Registry of the losses the pipeline can minimise: the paper's and alternatives to compare.
+"""The losses the search can minimise, filed in :data:`vehicle_pose.registry.LOSSES`: the
+paper's invariant loss and alternatives to compare.
 
 Every entry maps a :class:`PhotoTarget` to a callable scoring a rendered :class:`Frame` (lower is
 better). The alternatives that need a shaded image use a fixed head-light:
@@ -13,9 +14,10 @@ import numpy as np
 import numpy.typing as npt
 
 from vehicle_pose.loss.invariant import InvariantLoss, PartsInvariantLoss, PhotoTarget
+from vehicle_pose.registry import LOSSES
 from vehicle_pose.render.renderer import Frame, headlight
 
-__all__ = ["LOSSES", "make_loss", "headlight_shading"]
+__all__ = ["make_loss", "headlight_shading"]
 
 BoundLoss = Callable[[Frame], float]
 
@@ -112,21 +114,19 @@ class MutualInformationLoss:
         return 1.0 - 2.0 * (hf + hs - hj) / (hf + hs)
 
 
-LOSSES: dict[str, Callable[[PhotoTarget], BoundLoss]] = {
-    "invariant": InvariantLoss,
-    "invariant-paper": invariant_paper_loss,
-    "invariant-parts": PartsInvariantLoss,
-    "correlation": correlation_loss,
-    "squared": SquaredErrorLoss,
-    "silhouette-iou": SilhouetteIoULoss,
-    "mutual-information": MutualInformationLoss,
-}
+for _name, _factory in (
+    ("invariant", InvariantLoss),
+    ("invariant-paper", invariant_paper_loss),
+    ("invariant-parts", PartsInvariantLoss),
+    ("correlation", correlation_loss),
+    ("squared", SquaredErrorLoss),
+    ("silhouette-iou", SilhouetteIoULoss),
+    ("mutual-information", MutualInformationLoss),
+):
+    LOSSES.register(_name)(_factory)
 
 
 def make_loss(name: str, target: PhotoTarget) -> BoundLoss:
     """The loss called ``name`` bound to ``target``; ValueError for an unknown name."""
-    try:
-        factory = LOSSES[name]
-    except KeyError:
-        raise ValueError(f"unknown loss {name!r}; choose one of {', '.join(LOSSES)}") from None
-    return factory(target)
+    loss: BoundLoss = LOSSES.get(name)(target)
+    return loss

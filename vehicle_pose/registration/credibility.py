@@ -1,0 +1,54 @@
+"""Is a registered pose credible? The checks behind ``confidence`` and ``failed``
+(``docs/decisions/0008-confidence.md``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.metrics import iou
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.photo import is_gray
+from vehicle_pose.registration.fit import Fit
+from vehicle_pose.registration.segmentation import silhouette
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.segment.region import VehicleRegion
+
+__all__ = ["confidence", "fit_checks"]
+
+
+def confidence(checks: dict[str, float]) -> float:
+    """How credible a pose found without a start camera is, in [0, 1]; below 0.5 is ``failed``.
+
+    The weakest of three scores, each 0.5 at its threshold:
+
+    - fit: the final loss over its maximum, 1 up to 0.10, 0.5 at 0.15, 0 from 0.20;
+    - uniqueness: the relative loss margin over the best alternative at least 15 degrees away,
+      0.5 at 0.15, 1 from 0.35 (``agreement``, the share of other starts that converged to
+      the same pose, is reported but does not count: a wrong front/back twin can gather
+      starts as well);
+    - region: the final silhouette's IoU with the vehicle's region found before any pose was
+      known, 0.5 at 0.7, 1 from 0.9.
+    """
+    fit = (0.20 - checks.get("loss", 1.0)) / 0.10
+    unique = (checks.get("margin", 0.0) + 0.05) / 0.40
+    region = (checks.get("region_iou", 0.0) - 0.5) / 0.40
+    return float(np.clip(min(fit, unique, region), 0.0, 1.0))
+
+
+def fit_checks(
+    work: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    fitted: Fit,
+    region: VehicleRegion | None,
+    color: bool,
+    renderer: Renderer,
+) -> dict[str, float]:
+    """The final pose's silhouette against the region found before any pose was known
+    (``region_iou``) and against its own foreground (``foreground_iou``), and its loss over the
+    loss's maximum (``loss``; the maximum is 3 for a colour loss on a colour photo)."""
+    final = silhouette(model, fitted.camera, renderer)
+    checks = {} if region is None else {"region_iou": iou(final, region.mask)}
+    checks["foreground_iou"] = iou(final, fitted.foreground)
+    checks["loss"] = fitted.loss / (3.0 if color and not is_gray(work) else 1.0)
+    return checks

@@ -1,0 +1,244 @@
+"""One fit: a coarse-to-fine search from one start camera on the working photo (method.md §5).
+
+Each level renders a level of detail of the model at a reduced photo and minimises the loss
+(plus the edge and box terms) over the search coordinates; between levels GrabCut runs again,
+seeded by the pose found; the second level also probes dolly zooms of the first level's pose
+(``docs/decisions/0005-perspective-probes.md``). What a fit runs (levels, budget, terms) is a
+:class:`FitPlan`, chosen by the stage that calls it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.errors import CameraError, PoseError
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.geometry.parametrize import Parametrization, SearchFrame, ViewParams, make_parametrization
+from vehicle_pose.geometry.pose import Side, visible_side
+from vehicle_pose.loss.alternatives import make_loss
+from vehicle_pose.loss.edges import EdgeLoss
+from vehicle_pose.loss.invariant import make_target
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.registration.options import Pyramid, RegistrationOptions
+from vehicle_pose.registration.result import LevelReport
+from vehicle_pose.registration.segmentation import box_mask, first_foreground, resegment, silhouette
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.search.optimize import Optimizer, OptimizeResult
+from vehicle_pose.search.views import Box, box_overflow
+
+__all__ = ["Progress", "FitPlan", "Fit", "fit", "level_sizes", "face_budget", "probe_factors", "search_frame"]
+
+Progress = Callable[[str, int, float], None]
+"""``progress(stage, evaluations, loss)``, called every 20 evaluations and after each level."""
+
+_INVALID = 10.0  # the objective of coordinates that give no camera
+
+
+@dataclass(frozen=True)
+class FitPlan:
+    """What one fit runs.
+
+    ``coarse_to_fine``: the pyramid's coarse levels before the working size (else one level);
+    ``evaluations``: the budget of each level but the last of several; ``resegment``: GrabCut
+    again between levels; ``edge_weight``: the edge term's weight (0: none); ``step_scale``
+    scales the first level's simplex.
+    """
+
+    coarse_to_fine: bool
+    evaluations: int
+    resegment: bool
+    edge_weight: float
+    step_scale: float = 1.0
+
+    @classmethod
+    def hinted(cls, options: RegistrationOptions) -> FitPlan:
+        """The registration from a client's start camera: every option as given."""
+        seg = options.segmentation
+        return cls(options.pyramid.coarse_to_fine, options.budgets.max_evaluations, seg.grabcut and seg.resegment,
+                   options.terms.edge_weight)
+
+
+@dataclass
+class Fit:
+    """One fit's pose (at working size), its levels, and the foreground it ended on."""
+
+    camera: Camera
+    levels: list[LevelReport]
+    foreground: npt.NDArray[np.bool_]
+    grabcut_seconds: float
+
+    @property
+    def loss(self) -> float:
+        return self.levels[-1].loss
+
+    @property
+    def objective(self) -> float:
+        return self.levels[-1].objective
+
+
+def level_sizes(width: int, height: int, pyramid: Pyramid, coarse_to_fine: bool) -> list[tuple[int, int]]:
+    """Image sizes of the levels, coarsest first, ending with ``width`` x ``height``."""
+    longer = max(width, height)
+    sizes = []
+    if coarse_to_fine:
+        for size in pyramid.coarse_sizes:
+            if size < 0.75 * longer:
+                s = size / longer
+                sizes.append((max(8, round(width * s)), max(8, round(height * s))))
+    return [*sizes, (width, height)]
+
+
+def face_budget(pixels: float, pyramid: Pyramid) -> int:
+    """Faces of the level of detail for a silhouette of ``pixels`` pixels."""
+    wanted = max(float(pyramid.min_faces), pyramid.faces_per_pixel * pixels)
+    return int(2 ** np.ceil(np.log2(wanted)))
+
+
+def probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
+    """Focal factors of the perspective probes: ``focal_starts``, and when the focal length is
+    outside ``focal_range`` (image widths) one more to the range's geometric middle."""
+    factors = list(options.probes.focal_starts)
+    lo, hi = (r * camera.width for r in options.probes.focal_range)
+    if not lo <= camera.focal <= hi:
+        factors.append(float(np.sqrt(lo * hi)) / camera.focal)
+    return factors
+
+
+def search_frame(model: VehicleModel, side: Side, pivot: float) -> SearchFrame:
+    """What the search coordinates know of ``model`` seen from ``side``."""
+    centre, radius = model.mesh.sphere
+    return SearchFrame(centre, radius, model.wheels.side(side), side, pivot)
+
+
+def fit(
+    work: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    start: Camera,
+    options: RegistrationOptions,
+    plan: FitPlan,
+    renderer: Renderer,
+    optimizer: Optimizer,
+    progress: Progress | None = None,
+    foreground: npt.NDArray[np.bool_] | None = None,
+    stage_prefix: str = "",
+    *,
+    box: Box | None = None,
+) -> Fit:
+    """Register from one start camera on ``work`` (already at working size).
+
+    ``foreground`` (working size) replaces GrabCut. ``box`` (working-size pixels), the client's
+    box of the vehicle, widens what GrabCut may call foreground beyond the grown start
+    silhouette, and adds the box term.
+    """
+    Hf, Wf = work.shape[:2]
+    start = start.scaled(Wf, Hf)
+    side: Side
+    if options.side in ("left", "right"):
+        side = "left" if options.side == "left" else "right"
+    else:
+        side = visible_side(start, model.wheels.side("left"))
+    frame = search_frame(model, side, options.probes.dolly_pivot)
+
+    seed = silhouette(model, start, renderer)
+    if seed.sum() < 16:
+        raise PoseError("the start pose puts the model off-screen or behind the camera")
+
+    t = time.perf_counter()
+    segment_again = plan.resegment and foreground is None
+    region = None if box is None else box_mask(box, Wf, Hf, options.segmentation.box_margin)
+    if foreground is not None:
+        foreground = resized_mask(foreground, Wf, Hf)
+    else:
+        foreground = first_foreground(work, seed, options.segmentation, region)
+    grabcut_seconds = time.perf_counter() - t
+
+    terms, budgets = options.terms, options.budgets
+    camera = start
+    levels: list[LevelReport] = []
+    # The box term's points, sampled once per fit and only when the term is on (the no-hint
+    # chain runs a fit per screened start, without a box).
+    box_points = model.mesh.sample_points(600) if box is not None and terms.box_weight > 0 else None
+    area = max(float(seed.sum()), 1.0)
+    max_pixels = options.pyramid.max_pixels
+    fine = min(1.0, float(np.sqrt(max_pixels / area))) if max_pixels > 0 else 1.0
+    sizes = level_sizes(max(8, round(Wf * fine)), max(8, round(Hf * fine)), options.pyramid, plan.coarse_to_fine)
+    for li, (w, h) in enumerate(sizes):
+        t = time.perf_counter()
+        # Faces hidden from every outside view (the cabin of many CAD cars) are dropped: they
+        # never reach a pixel but cost the rasteriser as much as visible ones.
+        mesh = model.exterior(face_budget(float(seed.sum()) * (w * h) / (Wf * Hf), options.pyramid), renderer)
+        target = make_target(resized(work, w, h), resized_mask(foreground, w, h), color=options.color)
+        loss_fn = make_loss(options.loss, target)
+        edge_fn = None
+        if plan.edge_weight > 0:
+            edge_fn = EdgeLoss(resized(work, w, h), foreground=target.foreground, crease=terms.edge_crease)
+        stage = f"{stage_prefix}level {li + 1}/{len(sizes)} ({w}x{h})"
+        level_box = None
+        if box is not None and box_points is not None:
+            level_box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
+        counter = [0]
+
+        def search(reference: Camera, budget: int) -> tuple[OptimizeResult, Parametrization]:
+            params = make_parametrization(options.parametrization, reference.scaled(w, h), frame)
+            try:
+                x0 = params.start()
+            except PoseError:
+                raise PoseError(f"the start pose does not show the {side} side's wheels") from None
+
+            def objective(x: npt.NDArray[np.float64]) -> float:
+                try:
+                    cam = params.camera(x)
+                except (PoseError, CameraError):
+                    return _INVALID
+                rendered = renderer.render(mesh, cam)
+                value = float(loss_fn(rendered))
+                if edge_fn is not None:
+                    value += plan.edge_weight * edge_fn(rendered)
+                if level_box is not None and box_points is not None:
+                    value += terms.box_weight * box_overflow(cam, box_points, level_box, terms.box_tolerance,
+                                                             terms.box_shortfall)
+                counter[0] += 1
+                if progress is not None and counter[0] % 20 == 0:
+                    progress(stage, counter[0], value)
+                return value
+
+            steps = params.steps() * plan.step_scale * 0.4**li
+            return optimizer(objective, x0, steps, max_evaluations=budget), params
+
+        budget = budgets.fine_evaluations if li == len(sizes) - 1 and li > 0 else plan.evaluations
+        runs = [search(camera, budget)]
+        if li == 1 and options.probes.focal_starts:
+            # The second level also probes dolly zooms of the first level's pose, on the same
+            # mask (the perspective is what a simplex corrects least); a probe that beats the
+            # main search is searched on.
+            view = ViewParams.about(camera, frame)
+            probes = [search(view.dolly_zoom(f), budgets.focal_evaluations) for f in probe_factors(camera, options)]
+            best_probe = min(probes, key=lambda e: e[0].fun)
+            runs += probes
+            if best_probe[0].fun < runs[0][0].fun * (1.0 + options.probes.probe_margin):
+                runs.append(search(best_probe[1].camera(best_probe[0].x).scaled(Wf, Hf),
+                                   plan.evaluations - budgets.focal_evaluations))
+        res, params = min(runs, key=lambda e: e[0].fun)
+        if len(runs) > 1:
+            res = replace(res, evaluations=sum(r.evaluations for r, _ in runs), restarts=sum(r.restarts for r, _ in runs))
+        camera = params.camera(res.x).scaled(Wf, Hf)
+        loss = res.fun
+        if edge_fn is not None or level_box is not None:
+            loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
+        levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t, res.fun))
+        if progress is not None:
+            progress(stage, res.evaluations, res.fun)
+        if segment_again and li < len(sizes) - 1:
+            t = time.perf_counter()
+            # At the next level's resolution: a mask upsampled from a coarser GrabCut
+            # misplaces the outline by a pixel, and the pose follows the mask.
+            again = resegment(work, model, camera, options.segmentation, renderer, region, max(sizes[li + 1]))
+            foreground = foreground if again is None else again
+            grabcut_seconds += time.perf_counter() - t
+    return Fit(camera, levels, foreground, grabcut_seconds)

@@ -1,0 +1,198 @@
+"""``register``: the registration as a short sequence of stages (method.md §5).
+
+>>> result = register(photo_rgb, model, init_camera=camera)      # doctest: +SKIP
+>>> result.camera.K, result.camera.R, result.camera.t             # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.errors import BlankPhotoError
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.geometry.pose import camera_to_theta, visible_side
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.registration.credibility import confidence, fit_checks
+from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
+from vehicle_pose.registration.nohint import search_pass
+from vehicle_pose.registration.options import RegistrationOptions
+from vehicle_pose.registration.result import LevelReport, RegistrationResult
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.search.optimize import Optimizer, make_optimizer
+from vehicle_pose.search.views import Box, fit_to_box, parse_bbox
+from vehicle_pose.segment.region import VehicleRegion
+
+__all__ = ["register"]
+
+# A photo whose values all lie within this many levels is blank (sensor noise of a flat frame).
+_BLANK_RANGE = 2
+
+
+def _check_photo(photo: npt.NDArray[np.uint8]) -> None:
+    """ValueError for an array that is not an RGB photo, BlankPhotoError for one flat colour."""
+    if photo.ndim != 3 or photo.shape[2] != 3 or photo.dtype != np.uint8:
+        raise ValueError("photo must be an (H, W, 3) uint8 RGB array")
+    pixels = photo.reshape(-1, 3)
+    low, high = pixels.min(axis=0), pixels.max(axis=0)
+    if int((high.astype(np.int16) - low).max()) <= _BLANK_RANGE:
+        raise BlankPhotoError(f"the photo is one flat colour (each channel within {_BLANK_RANGE} levels of "
+                              f"RGB {tuple(int(v) for v in low)}): there is nothing to register on")
+
+
+def _given_start(work: npt.NDArray[np.uint8], model: VehicleModel, init_camera: Camera, rect: Box | None,
+                 options: RegistrationOptions) -> Camera:
+    """The client's start camera at working size; with a box, moved and scaled to fill it."""
+    Hf, Wf = work.shape[:2]
+    start = init_camera.scaled(Wf, Hf)
+    if rect is not None and options.terms.fit_start_to_box:
+        # A box is far more precise than a rough pose about where the vehicle is and how
+        # large it looks: the start keeps its rotation and focal length and is moved and
+        # scaled to fill it (docs/decisions/0006-real-photo-terms.md).
+        start = fit_to_box(start, model.mesh.sample_points(600), model.mesh.sphere[0], rect, rounds=5, clip=True)
+    return start
+
+
+def register(
+    photo: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    *,
+    init_camera: Camera | None = None,
+    bbox: str | Sequence[float] | None = None,
+    options: RegistrationOptions = RegistrationOptions(),
+    renderer: Renderer | None = None,
+    optimizer: Optimizer | None = None,
+    progress: Progress | None = None,
+    foreground: npt.NDArray[np.bool_] | None = None,
+) -> RegistrationResult:
+    """Find the camera that makes the model coincide with the vehicle in the photo.
+
+    With a start camera, one coarse-to-fine fit runs from it. Without one (a box, or no hint
+    at all), the search of :mod:`~vehicle_pose.registration.nohint` finds the vehicle, screens
+    start poses and refines the best, and the pose gets a confidence and a ``failed`` flag; a
+    pose that is not credible is searched for again around it.
+
+    Parameters
+    ----------
+    photo : (H, W, 3) uint8
+        RGB photo (gray photos have three equal channels).
+    model : VehicleModel
+    init_camera : Camera, optional, keyword-only
+        Start pose; a camera for a photo of another size is rescaled to this one.
+    bbox : "X0,Y0,X1,Y1" or 4 numbers, optional, keyword-only
+        The vehicle's box. Without a start camera the search starts from it; with one, it
+        tells GrabCut where the vehicle may be besides the start pose's grown silhouette.
+    options : RegistrationOptions, keyword-only
+    renderer : Renderer, optional, keyword-only
+        Defaults to a renderer on the process's EGL context.
+    optimizer : Optimizer, optional, keyword-only
+        Overrides ``options.optimizer``.
+    progress : callable(stage, evaluations, loss), optional, keyword-only
+    foreground : (H, W) bool, optional, keyword-only
+        The vehicle's pixels, when the caller knows them; replaces GrabCut.
+
+    Raises
+    ------
+    ValueError
+        The photo or the foreground is not an array of the right shape.
+    BlankPhotoError
+        The photo is one flat colour.
+    CameraError
+        The start camera or box is malformed, or the camera is for a picture of another shape.
+    PoseError
+        The start pose puts the model behind the camera or off-screen.
+    """
+    t_start = time.perf_counter()
+    _check_photo(photo)
+    H0, W0 = photo.shape[:2]
+    if foreground is not None and foreground.shape != (H0, W0):
+        raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
+    if init_camera is not None:
+        init_camera.for_photo(W0, H0)  # a camera of another picture fails here, not stretched
+    renderer = renderer if renderer is not None else Renderer()
+    optimizer = optimizer if optimizer is not None else make_optimizer(options.optimizer)
+
+    s = min(1.0, options.pyramid.max_size / max(W0, H0))
+    Wf, Hf = max(8, round(W0 * s)), max(8, round(H0 * s))
+    work = resized(photo, Wf, Hf)
+    fg = resized_mask(foreground.astype(bool), Wf, Hf) if foreground is not None else None
+    box = parse_bbox(bbox, W0, H0) if bbox is not None else None
+    sx, sy = Wf / W0, Hf / H0
+    rect: Box | None = None if box is None else (box[0] * sx, box[1] * sy, box[2] * sx, box[3] * sy)
+
+    timings: dict[str, float] = {}
+    listed: list[dict[str, Any]] = []
+    region: VehicleRegion | None = None
+    if init_camera is not None:
+        source, method = "init_camera", "given"
+        timings["start"] = 0.0
+        start = _given_start(work, model, init_camera, rect, options)
+        found = fit(work, model, start, options, FitPlan.hinted(options), renderer, optimizer, progress, fg, box=rect)
+        levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
+        checks = fit_checks(work, model, found, None, options.color, renderer)
+    else:
+        source = "bbox" if bbox is not None else "none"
+        # The search without a start camera runs without the edge term, and says so in the
+        # options it reports (docs/decisions/0007-no-hint-search.md).
+        options = options.replace(edge_weight=0.0)
+        search = search_pass(work, model, rect, fg, None, options, renderer, optimizer, progress)
+        found, levels, region, checks = search.fit, search.levels, search.region, search.checks
+        start, method = search.candidate.camera, search.candidate.source
+        listed, spent, grabcut_seconds = search.listed, search.spent, search.grabcut_seconds
+        timings.update(search.timings)
+        checks |= fit_checks(work, model, found, region, options.color, renderer)
+        if fg is None and options.search.second_pass and confidence(checks) < options.search.min_confidence:
+            # Not credible: search again in the foreground segmented around the pose found,
+            # usually closer to the vehicle than the region found with no pose at all, and
+            # keep the lower loss. The region check stays against the first region, found
+            # before any pose was known.
+            t = time.perf_counter()
+            again = search_pass(work, model, rect, fg, VehicleRegion.from_mask(found.foreground), options,
+                                renderer, optimizer, progress, "second pass: ")
+            spent += again.spent
+            grabcut_seconds += again.grabcut_seconds
+            timings["second_pass"] = time.perf_counter() - t
+            if again.fit.objective < found.objective:
+                found, levels, checks, listed = again.fit, again.levels, again.checks, again.listed
+                start, method = again.candidate.camera, again.candidate.source
+                checks |= fit_checks(work, model, found, region, options.color, renderer)
+            checks["passes"] = 2.0
+    timings["grabcut"] = grabcut_seconds
+    return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
+                   W0, H0, time.perf_counter() - t_start)
+
+
+def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: VehicleModel,
+            options: RegistrationOptions, source: str, method: str, start: Camera, checks: dict[str, float],
+            listed: list[dict[str, Any]], timings: dict[str, float], W0: int, H0: int,
+            seconds: float) -> RegistrationResult:
+    """The result at the photo's own size."""
+    final = found.camera.scaled(W0, H0)
+    side = visible_side(final, model.wheels.side("left"))
+    timings["optimize"] = sum(level.seconds for level in levels)
+    conf = confidence(checks) if "region_iou" in checks else None
+    return RegistrationResult(
+        camera=final,
+        theta=camera_to_theta(final, model.wheels.side(side), side),
+        loss=levels[-1].loss,
+        evaluations=sum(level.evaluations for f in spent for level in f.levels),
+        restarts=sum(level.restarts for f in spent for level in f.levels),
+        seconds=seconds,
+        model=model,
+        start_source=source,
+        start_camera=start.scaled(W0, H0),
+        levels=levels,
+        options=options,
+        foreground=resized_mask(found.foreground, W0, H0),
+        timings=timings,
+        start_method=method,
+        confidence=conf,
+        failed=conf is not None and conf < options.search.min_confidence,
+        checks=checks,
+        candidates=listed,
+    )

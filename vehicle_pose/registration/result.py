@@ -1,0 +1,103 @@
+"""What a registration returns: the pose, how it was found, and how credible it is."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.geometry.pose import Theta
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.registration.options import RegistrationOptions
+
+__all__ = ["LevelReport", "RegistrationResult"]
+
+
+@dataclass(frozen=True)
+class LevelReport:
+    """What one pyramid level did. ``loss`` is the named loss at the level's pose,
+    ``objective`` what the search minimised: the loss plus the edge and box terms."""
+
+    width: int
+    height: int
+    faces: int
+    evaluations: int
+    restarts: int
+    loss: float
+    seconds: float
+    objective: float
+
+
+@dataclass
+class RegistrationResult:
+    """A registered pose and how it was found.
+
+    ``camera`` maps mesh coordinates to pixels of the photo as given (OpenCV convention);
+    ``foreground`` is the GrabCut mask at the photo's size. ``start_source`` is the hint the
+    client gave (``init_camera``, ``bbox`` or ``none``), ``start_method`` how the winning start
+    was found (``given``, ``view-search`` or ``wheels``). ``confidence`` (in [0, 1], see
+    :func:`~vehicle_pose.registration.credibility.confidence`) and ``failed`` judge a pose found without a start camera; ``checks``
+    holds the measures behind them (and, for every run, ``foreground_iou``, the final
+    silhouette against the final GrabCut mask, and ``loss``, the final loss over its maximum;
+    ``passes`` is 2 when a second search ran);
+    ``candidates`` lists the screened starts. ``evaluations`` and ``restarts`` count every
+    search run, screening included; ``levels`` are the winning pose's levels.
+    """
+
+    camera: Camera
+    theta: Theta
+    loss: float
+    evaluations: int
+    restarts: int
+    seconds: float
+    model: VehicleModel
+    start_source: str
+    start_camera: Camera
+    levels: list[LevelReport]
+    options: RegistrationOptions
+    foreground: npt.NDArray[np.bool_] = field(repr=False)
+    timings: dict[str, float] = field(default_factory=dict)
+    start_method: str = "given"
+    confidence: float | None = None
+    failed: bool = False
+    checks: dict[str, float] = field(default_factory=dict)
+    candidates: list[dict[str, Any]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON result: camera, theta, BOP-style fields, loss, counts, timings."""
+        cam = self.camera
+        info = self.model.info
+        return {
+            "camera": cam.to_dict(),
+            "theta": self.theta.to_dict(),
+            "loss": self.loss,
+            "loss_name": self.options.loss,
+            "evaluations": self.evaluations,
+            "restarts": self.restarts,
+            "seconds": self.seconds,
+            "model": {
+                "id": info.id,
+                "name": info.name,
+                "units": info.units,
+                "wheels": self.model.wheels.to_dict(),
+                "estimated": list(info.estimated),
+            },
+            "confidence": self.confidence,
+            "failed": self.failed,
+            "checks": self.checks,
+            "start": {
+                "source": self.start_source,
+                "method": self.start_method,
+                "camera": self.start_camera.to_dict(),
+                "candidates": self.candidates,
+            },
+            "levels": [vars(level) for level in self.levels],
+            "timings": self.timings,
+            "options": self.options.flat(),
+            "cam_R_m2c": cam.R.reshape(-1).tolist(),
+            "cam_t_m2c": cam.t.tolist(),
+            "cam_K": cam.K.reshape(-1).tolist(),
+        }
