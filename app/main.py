@@ -11,11 +11,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from vehicle_pose import __version__
 
-from .api.routes import admin, health, models, registrations
-from .core import problems
-from .core.config import get_settings
-from .core.metrics import RequestMetrics
-from .uploads import BodySizeLimit
+from app.api.routes import admin, health, models, registrations
+from app import problems
+from core.config import get_settings
+from app.metrics import RequestMetrics
+from app.uploads import BodySizeLimit
 
 DESCRIPTION = """
 Register a vehicle's 3D model onto a photo: POST the photo and a model id, poll the job,
@@ -96,5 +96,3 @@ def create_app() -> FastAPI:
     app.add_middleware(SecurityHeaders)
     return app
 
-
-app = create_app()

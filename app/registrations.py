@@ -25,13 +25,13 @@ from vehicle_pose.errors import UnknownModelError
 from vehicle_pose.search.views import parse_bbox
 from vehicle_pose.photo import verify_photo
 
-from .core.config import Settings
-from .core.library import get_library
-from .core.problems import Problem
-from .core.storage import ObjectMissing, Storage, get_storage
-from .models import Client, JobStatus, Registration, as_utc, new_id
-from .schemas import JobError, Links, Progress, RegistrationOptionsIn, RegistrationOut
-from .uploads import sniff_image
+from core.config import Settings
+from core.library import get_library
+from app.problems import Problem
+from core.storage import ObjectMissing, Storage, get_storage
+from core.models import Client, JobStatus, Registration, as_utc, new_id
+from app.schemas import JobError, Links, Progress, RegistrationOptionsIn, RegistrationOut
+from app.uploads import sniff_image
 
 
 @dataclass(frozen=True)

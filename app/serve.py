@@ -22,7 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from .core.config import Settings
+from core.config import Settings
 
 REDIS_CANDIDATES = ("/usr/bin/redis-server", "/usr/sbin/redis-server", "/usr/local/bin/redis-server")
 RESTART_MAX_S = 30.0
@@ -119,9 +119,9 @@ def _bootstrap_keys(settings: Settings, *, keep_file: bool) -> dict[str, str]:
     """
     from sqlalchemy import func, select
 
-    from .core.db import session_scope
-    from .core.security import create_client
-    from .models import Client
+    from core.db import session_scope
+    from core.security import create_client
+    from core.models import Client
 
     path = settings.data_dir / "credentials.json"
     with session_scope() as s:
@@ -180,8 +180,8 @@ def _hand_back() -> None:
     (acks_late), so its record says ``queued`` until a worker takes it again."""
     from sqlalchemy import update
 
-    from .core.db import session_scope
-    from .models import JobStatus, Registration
+    from core.db import session_scope
+    from core.models import JobStatus, Registration
 
     try:
         with session_scope() as s:
@@ -223,21 +223,21 @@ def run(args: argparse.Namespace) -> int:
             password = url.split("//:", 1)[1].split("@", 1)[0]
             redis = _Child("redis-server", lambda: _start_redis(data_dir, port, password)[0], proc, time.monotonic())
         os.environ.update(env)  # this process migrates and bootstraps with the same settings
-        from .core.config import get_settings
-        from .core.migrate import upgrade
+        from core.config import get_settings
+        from core.migrate import upgrade
 
         get_settings.cache_clear()
         settings = get_settings()
         upgrade()
         keys = _bootstrap_keys(settings, keep_file=True)
         workers = _Child("the workers", lambda: subprocess.Popen(
-            [sys.executable, "-m", "celery", "-A", "worker.celery_app", "--quiet", "worker", "--loglevel", args.log_level,
+            [sys.executable, "-m", "celery", "-A", "worker", "--quiet", "worker", "--loglevel", args.log_level,
              "--pool", "prefork", "--concurrency", str(args.workers), "-Q", "registrations",
              "--hostname", f"worker-{os.getpid()}@%h", "--without-mingle", "--without-gossip"],
             env=env,
         ))
         api = _Child("the API", lambda: subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "app.main:app", "--host", args.host, "--port", str(args.port),
+            [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host", args.host, "--port", str(args.port),
              "--log-level", args.log_level.lower(), "--no-access-log"],
             env=env,
         ))
@@ -270,10 +270,10 @@ def _use_data_dir(args: argparse.Namespace) -> None:
 
 def create_key(args: argparse.Namespace) -> int:
     _use_data_dir(args)
-    from .core.config import get_settings
-    from .core.db import session_scope
-    from .core.migrate import upgrade
-    from .core.security import create_client
+    from core.config import get_settings
+    from core.db import session_scope
+    from core.migrate import upgrade
+    from core.security import create_client
 
     settings = get_settings()
     db_file = settings.data_dir / "vehicle_pose.db"
@@ -292,8 +292,8 @@ def create_key(args: argparse.Namespace) -> int:
 def migrate(args: argparse.Namespace) -> int:
     """Apply migrations; on a database with no client yet, create the bootstrap admin and client."""
     _use_data_dir(args)
-    from .core.config import get_settings
-    from .core.migrate import upgrade
+    from core.config import get_settings
+    from core.migrate import upgrade
 
     upgrade()
     settings = get_settings()

@@ -8,7 +8,7 @@ from starlette.exceptions import HTTPException
 from starlette.requests import Request
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from .core.problems import problem_response
+from app.problems import problem_response
 
 # Magic numbers of the photo formats the engine decodes; the declared Content-Type is ignored.
 _SIGNATURES: tuple[tuple[bytes, int, str], ...] = (

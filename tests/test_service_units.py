@@ -15,12 +15,12 @@ from pydantic import ValidationError
 from service_stack import encode, free_port
 from sqlalchemy import create_engine, inspect, select
 
-from app.core import config, db
-from app.core.config import Settings
-from app.core.migrate import alembic_config, upgrade
-from app.core.security import create_client
-from app.core.storage import LocalStorage, ObjectMissing
-from app.models import Client, JobStatus, Registration
+from core import config, db
+from core.config import Settings
+from core.migrate import alembic_config, upgrade
+from core.security import create_client
+from core.storage import LocalStorage, ObjectMissing
+from core.models import Client, JobStatus, Registration
 from app.uploads import sniff_image
 from vehicle_pose.render.synth import synthesize
 
@@ -90,7 +90,7 @@ def test_migrations_upgrade_and_downgrade(tmp_path):
 @pytest.fixture
 def service_db(tmp_path, monkeypatch):
     """Settings, database and storage of a service in ``tmp_path`` (no broker needed)."""
-    from app.core import library, storage
+    from core import library, storage
 
     monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
     caches = (config.get_settings, db.get_engine, db._session_factory, storage.get_storage, library.get_library)
@@ -192,7 +192,7 @@ def test_s3_storage_against_an_s3_compatible_server(tmp_path):
     import boto3
     from moto.server import ThreadedMotoServer
 
-    from app.core.storage import make_storage
+    from core.storage import make_storage
 
     port = free_port()
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
@@ -247,7 +247,8 @@ def postgres_url():
 def test_postgresql_migrations_jobs_and_metrics(postgres_url, monkeypatch, tmp_path):
     from alembic import command
 
-    from app.core import library, metrics, storage
+    from app import metrics
+    from core import library, storage
 
     monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
     monkeypatch.setenv("VP_DATABASE_URL", postgres_url)
@@ -326,7 +327,7 @@ def test_create_key_needs_the_service_database(tmp_path):
     ],
 )
 def test_invalid_options_name_the_field_and_the_reason(options, words):
-    from app.core.problems import Problem
+    from app.problems import Problem
     from app.registrations import Photo, parse_hints
 
     photo = Photo(b"", "image/png", 640, 480)
@@ -340,7 +341,7 @@ def test_invalid_options_name_the_field_and_the_reason(options, words):
 
 
 def test_a_start_camera_of_another_aspect_ratio_is_a_422():
-    from app.core.problems import Problem
+    from app.problems import Problem
     from app.registrations import Photo, parse_hints
 
     cam = {"K": [[500, 0, 319.5], [0, 500, 239.5], [0, 0, 1]], "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],

@@ -153,7 +153,7 @@ class Topology:
     def _start_service(self, out: object) -> None:
         self.workers = [
             subprocess.Popen(
-                [sys.executable, "-m", "celery", "-A", "worker.celery_app", "--quiet", "worker", "--loglevel", "INFO",
+                [sys.executable, "-m", "celery", "-A", "worker", "--quiet", "worker", "--loglevel", "INFO",
                  "--pool", "prefork", "--concurrency", "1", "-Q", "registrations", "--hostname", f"w{i}-{time.time_ns()}@%h",
                  "--without-mingle", "--without-gossip"],
                 env=self.env, stdout=out, stderr=subprocess.STDOUT, cwd=self.root,
@@ -162,7 +162,7 @@ class Topology:
         ]
         self.api_port = getattr(self, "api_port", None) or free_port()
         self.api = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "app.main:app", "--host", "127.0.0.1", "--port", str(self.api_port),
+            [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host", "127.0.0.1", "--port", str(self.api_port),
              "--log-level", "warning"],
             env=self.env, stdout=out, stderr=subprocess.STDOUT, cwd=self.root,
         )

@@ -18,11 +18,11 @@ import numpy as np
 import numpy.typing as npt
 from sqlalchemy.exc import OperationalError
 
-from app.core.config import Settings, get_settings
-from app.core.db import session_scope
-from app.core.library import get_library
-from app.core.storage import ObjectMissing, Storage, StorageUnavailable, get_storage
-from app.models import JobStatus, Registration, utcnow
+from core.config import Settings, get_settings
+from core.db import session_scope
+from core.library import get_library
+from core.storage import ObjectMissing, Storage, StorageUnavailable, get_storage
+from core.models import JobStatus, Registration, utcnow
 from vehicle_pose import (
     Camera,
     ModelLibrary,

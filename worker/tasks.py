@@ -7,15 +7,15 @@ import subprocess
 import sys
 from typing import Any
 
-from celery import Task
+from celery import Task, shared_task
 from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 from celery.signals import worker_init, worker_process_init
 
-from app.core.config import get_settings
-from app.core.db import get_engine
+from core.config import get_settings
+from core.db import get_engine
 
-from .celery_app import PREPARE_TASK, TASK, celery_app
-from .jobs import Retry, fail_job, requeue, run_job
+from core.queue import PREPARE_TASK, TASK
+from worker.jobs import Retry, fail_job, requeue, run_job
 
 log = logging.getLogger(__name__)
 
@@ -43,10 +43,10 @@ def warm_library(**_: object) -> None:
         log.warning("some library models could not be prepared (exit %s); see the log above", done.returncode)
 
 
-@celery_app.task(name=PREPARE_TASK, ignore_result=True)
+@shared_task(name=PREPARE_TASK, ignore_result=True)
 def prepare_model(model_id: str) -> None:
     """Prepare a model that was just uploaded (sent by the API; best effort)."""
-    from .warm import prepare_model as prepare
+    from worker.warm import prepare_model as prepare
 
     try:
         log.info("model %s prepared (%.1f s)", model_id, prepare(model_id))
@@ -82,7 +82,7 @@ class RegistrationTask(Task):
         if job_id is None:
             return
         if isinstance(exc, TimeLimitExceeded):
-            limit = self.time_limit or celery_app.conf.task_time_limit
+            limit = self.time_limit or self.app.conf.task_time_limit
             reason = ("timeout", f"the registration was stopped at the hard time limit of {limit} s")
         else:
             reason = ("internal-error", f"gave up: {type(exc).__name__}: {exc}")
@@ -92,7 +92,7 @@ class RegistrationTask(Task):
             log.exception("cannot record the failure of job %s", job_id)
 
 
-@celery_app.task(name=TASK, bind=True, base=RegistrationTask, max_retries=MAX_RETRIES)
+@shared_task(name=TASK, bind=True, base=RegistrationTask, max_retries=MAX_RETRIES)
 def register_job(self: Task, job_id: str) -> str:
     """Register the job's photo; attempts that really ran are counted in the job record."""
     try:

@@ -17,7 +17,7 @@ log = logging.getLogger("worker.warm")
 
 def prepare_model(model_id: str) -> float:
     """Prepare one library model (its levels of detail and exterior passes); the seconds."""
-    from app.core.library import get_library
+    from core.library import get_library
     from vehicle_pose.render.renderer import Renderer
 
     t = time.perf_counter()
@@ -27,7 +27,7 @@ def prepare_model(model_id: str) -> float:
 
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from app.core.library import get_library
+    from core.library import get_library
 
     failures = 0
     for model_id in get_library().ids():

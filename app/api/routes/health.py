@@ -11,13 +11,13 @@ from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
-from worker.celery_app import get_celery
+from core.queue import get_celery
 
-from ...core.config import get_settings
-from ...core.db import session_scope
-from ...core.metrics import registry
-from ...core.problems import MEDIA_TYPE
-from ...core.storage import get_storage
+from core.config import get_settings
+from core.db import session_scope
+from app.metrics import registry
+from app.problems import MEDIA_TYPE
+from core.storage import get_storage
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["operations"])

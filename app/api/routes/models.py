@@ -15,10 +15,10 @@ from vehicle_pose import EmptyMeshError, ModelError, UnknownModelError
 from vehicle_pose.model.library import MODEL_ID, install_model
 from vehicle_pose.model.metadata import UNITS, ModelInfo
 
-from ...core.library import get_library, get_store
-from ...core.problems import Problem
-from ...schemas import ModelOut
-from ..deps import AdminClient, CurrentClient, SettingsDep
+from core.library import get_library, get_store
+from app.problems import Problem
+from app.schemas import ModelOut
+from app.api.deps import AdminClient, CurrentClient, SettingsDep
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/models", tags=["models"])
@@ -43,7 +43,7 @@ def _out(info: ModelInfo) -> ModelOut:
 
 def _prepare_soon(model_id: str) -> None:
     """Ask a worker to prepare the new model's levels now rather than at its first job."""
-    from worker.celery_app import PREPARE_TASK, get_celery
+    from core.queue import PREPARE_TASK, get_celery
 
     try:
         get_celery().send_task(PREPARE_TASK, args=[model_id], retry=False)

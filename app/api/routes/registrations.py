@@ -9,12 +9,12 @@ from fastapi import APIRouter, File, Form, Header, Response, UploadFile, status
 from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 
-from worker.celery_app import TASK, get_celery
+from core.queue import TASK, get_celery
 
-from ...core.problems import Problem
-from ...core.storage import get_storage
-from ...models import JobStatus, Registration
-from ...registrations import (
+from app.problems import Problem
+from core.storage import get_storage
+from core.models import JobStatus, Registration
+from app.registrations import (
     check_model,
     check_photo,
     create_job,
@@ -26,8 +26,8 @@ from ...registrations import (
     stored_response,
     visible_job,
 )
-from ...schemas import RegistrationAccepted, RegistrationOut
-from ..deps import CurrentClient, SessionDep, SettingsDep
+from app.schemas import RegistrationAccepted, RegistrationOut
+from app.api.deps import CurrentClient, SessionDep, SettingsDep
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/registrations", tags=["registrations"])

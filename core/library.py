@@ -6,7 +6,7 @@ from functools import lru_cache
 
 from vehicle_pose import ModelLibrary, ModelStore
 
-from .config import get_settings
+from core.config import get_settings
 
 
 @lru_cache

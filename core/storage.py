@@ -14,7 +14,7 @@ from typing import Protocol
 
 from vehicle_pose.files import write_atomic
 
-from .config import Settings, get_settings
+from core.config import Settings, get_settings
 
 
 class ObjectMissing(KeyError):

@@ -62,7 +62,7 @@ _SLUGS = {
 def install(app: FastAPI) -> None:
     from sqlalchemy.exc import OperationalError
 
-    from .storage import StorageUnavailable
+    from core.storage import StorageUnavailable
 
     """Answer every error of ``app`` as problem+json."""
 

@@ -12,7 +12,7 @@ from functools import lru_cache
 
 from celery import Celery
 
-from app.core.config import Settings, get_settings
+from core.config import Settings, get_settings
 
 QUEUE = "registrations"
 TASK = "worker.tasks.register_job"
@@ -20,7 +20,7 @@ PREPARE_TASK = "worker.tasks.prepare_model"
 
 
 def make_celery(settings: Settings) -> Celery:
-    app = Celery("vehicle_pose", broker=settings.broker_url, include=["worker.tasks"])
+    app = Celery("vehicle_pose", broker=settings.broker_url)
     app.conf.update(
         task_acks_late=True,
         task_reject_on_worker_lost=True,
@@ -55,8 +55,6 @@ def make_celery(settings: Settings) -> Celery:
 
 @lru_cache
 def get_celery() -> Celery:
-    """The process's Celery application."""
+    """The process's Celery application, made on first use (the API sends tasks by name; the
+    worker's tasks are shared tasks, bound to it when the worker asks for ``worker.app``)."""
     return make_celery(get_settings())
-
-
-celery_app = get_celery()

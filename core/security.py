@@ -8,7 +8,7 @@ import secrets
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from ..models import Client
+from core.models import Client
 
 KEY_PREFIX = "vp_"
 

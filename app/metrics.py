@@ -21,11 +21,11 @@ from prometheus_client.registry import Collector
 from sqlalchemy import case, func, select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from worker.celery_app import QUEUE
+from core.queue import QUEUE
 
-from ..models import JobStatus, Registration
-from .config import get_settings
-from .db import session_scope
+from core.models import JobStatus, Registration
+from core.config import get_settings
+from core.db import session_scope
 
 log = logging.getLogger(__name__)
 

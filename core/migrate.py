@@ -7,9 +7,9 @@ from pathlib import Path
 from alembic import command
 from alembic.config import Config
 
-from .config import get_settings
+from core.config import get_settings
 
-_SCRIPTS = Path(__file__).resolve().parents[1] / "migrations"
+_SCRIPTS = Path(__file__).resolve().parent / "migrations"
 
 
 def alembic_config(database_url: str | None = None) -> Config:

@@ -11,7 +11,7 @@ from pathlib import Path
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
-from .config import get_settings
+from core.config import get_settings
 
 
 def make_engine(url: str) -> Engine:
