@@ -9,13 +9,12 @@ from fastapi.staticfiles import StaticFiles
 from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from vehicle_pose import __version__
-
-from app.api.routes import admin, health, models, registrations
 from app import problems
-from core.config import get_settings
+from app.api.routes import admin, health, models, registrations
 from app.metrics import RequestMetrics
 from app.uploads import BodySizeLimit
+from core.config import get_settings
+from vehicle_pose import __version__
 
 DESCRIPTION = """
 Register a vehicle's 3D model onto a photo: POST the photo and a model id, poll the job,
@@ -26,7 +25,8 @@ Authenticate with `Authorization: Bearer <API key>`. Errors are RFC 9457 problem
 
 
 # The admin page is plain HTML and CSS from this origin: nothing else may load, frame or sniff it.
-ADMIN_CSP = "default-src 'none'; style-src 'self'; img-src 'self'; form-action 'self'; frame-ancestors 'none'; base-uri 'none'"
+ADMIN_CSP = ("default-src 'none'; style-src 'self'; img-src 'self'; form-action 'self'; frame-ancestors 'none'; "
+             "base-uri 'none'")
 
 
 class SecurityHeaders:

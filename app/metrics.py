@@ -21,11 +21,10 @@ from prometheus_client.registry import Collector
 from sqlalchemy import case, func, select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from core.queue import QUEUE
-
-from core.models import JobStatus, Registration
 from core.config import get_settings
 from core.db import session_scope
+from core.models import JobStatus, Registration
+from core.queue import QUEUE
 
 log = logging.getLogger(__name__)
 
@@ -104,17 +103,17 @@ class JobCollector(Collector):
                 .group_by(Registration.error_type)
             ).all():
                 failures.add_metric([kind or "unknown"], n)
-            for st in (JobStatus.succeeded.value, JobStatus.failed.value):
+            for status in (JobStatus.succeeded.value, JobStatus.failed.value):
                 columns = [func.sum(case((Registration.duration_s <= b, 1), else_=0)) for b in DURATION_BUCKETS]
                 row = s.execute(
                     select(func.count(), func.coalesce(func.sum(Registration.duration_s), 0.0), *columns).where(
-                        Registration.status == st, Registration.duration_s.is_not(None)
+                        Registration.status == status, Registration.duration_s.is_not(None)
                     )
                 ).one()
                 total, seconds, *cumulative = row
                 buckets = [(str(b), int(n or 0)) for b, n in zip(DURATION_BUCKETS, cumulative, strict=True)]
                 buckets.append(("+Inf", int(total)))
-                durations.add_metric([st], buckets, sum_value=float(seconds))
+                durations.add_metric([status], buckets, sum_value=float(seconds))
         yield jobs
         yield failures
         yield durations

@@ -22,7 +22,8 @@ MEDIA_TYPE = "application/problem+json"
 class Problem(Exception):
     """An error answered as problem+json; ``slug`` names its stable type."""
 
-    def __init__(self, status: int, slug: str, detail: str, *, headers: dict[str, str] | None = None, **extra: Any) -> None:
+    def __init__(self, status: int, slug: str, detail: str, *, headers: dict[str, str] | None = None,
+                 **extra: Any) -> None:
         super().__init__(detail)
         self.status = status
         self.slug = slug

@@ -15,6 +15,13 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 from starlette.responses import Response
 
+from app.problems import Problem
+from app.schemas import JobError, Links, Progress, RegistrationOptionsIn, RegistrationOut
+from app.uploads import sniff_image
+from core.config import Settings
+from core.library import get_library
+from core.models import Client, JobStatus, Registration, as_utc, new_id
+from core.storage import ObjectMissing, Storage, get_storage
 from vehicle_pose import (
     Camera,
     CameraError,
@@ -22,16 +29,8 @@ from vehicle_pose import (
     PhotoTooLargeError,
 )
 from vehicle_pose.errors import UnknownModelError
-from vehicle_pose.search.views import parse_bbox
 from vehicle_pose.photo import verify_photo
-
-from core.config import Settings
-from core.library import get_library
-from app.problems import Problem
-from core.storage import ObjectMissing, Storage, get_storage
-from core.models import Client, JobStatus, Registration, as_utc, new_id
-from app.schemas import JobError, Links, Progress, RegistrationOptionsIn, RegistrationOut
-from app.uploads import sniff_image
+from vehicle_pose.search.views import parse_bbox
 
 
 @dataclass(frozen=True)

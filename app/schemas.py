@@ -39,7 +39,7 @@ def _options_model() -> type[_OptionsBase]:
         else:
             bounds = {"ge": spec.low, "le": spec.high}
         fields[name] = (kind | None, Field(default=None, description=spec.help, **bounds))
-    model: type[_OptionsBase] = create_model(  # type: ignore[call-overload]
+    model: type[_OptionsBase] = create_model(
         "RegistrationOptionsIn", __base__=_OptionsBase,
         __doc__="Engine options a client may set (the ``options`` form field, JSON); defaults are the engine's.",
         **fields)

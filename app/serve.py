@@ -48,7 +48,8 @@ def _wait_port(port: int, proc: subprocess.Popen[bytes], what: str, timeout: flo
     raise SystemExit(f"vehicle-pose-service: {what} did not listen on port {port} within {timeout:.0f} s")
 
 
-def _start_redis(data_dir: Path, port: int | None = None, password: str | None = None) -> tuple[subprocess.Popen[bytes], str]:
+def _start_redis(data_dir: Path, port: int | None = None,
+                 password: str | None = None) -> tuple[subprocess.Popen[bytes], str]:
     """Debian's redis-server on ``port`` (a free one by default) with ``password`` (a new one
     by default); a restart passes both again, so every client's URL stays valid."""
     binary = shutil.which("redis-server") or next((p for p in REDIS_CANDIDATES if Path(p).exists()), None)
@@ -120,8 +121,8 @@ def _bootstrap_keys(settings: Settings, *, keep_file: bool) -> dict[str, str]:
     from sqlalchemy import func, select
 
     from core.db import session_scope
-    from core.security import create_client
     from core.models import Client
+    from core.security import create_client
 
     path = settings.data_dir / "credentials.json"
     with session_scope() as s:
@@ -237,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
             env=env,
         ))
         api = _Child("the API", lambda: subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host", args.host, "--port", str(args.port),
+            [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host", args.host, "--port",
+             str(args.port),
              "--log-level", args.log_level.lower(), "--no-access-log"],
             env=env,
         ))
@@ -319,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--admin", action="store_true")
     m = sub.add_parser("migrate", help="apply database migrations")
     for command in (r, k, m):
-        command.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"), help="the service's data folder")
+        command.add_argument("--data-dir", default=os.environ.get("VP_DATA_DIR", "data"),
+                             help="the service's data folder")
     args = p.parse_args(argv if argv is not None else (sys.argv[1:] or ["run"]))
     return {"run": run, "create-key": create_key, "migrate": migrate}[args.command or "run"](args)
 

@@ -13,14 +13,15 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import parse_options, perturbed, photoreal_cases, projection_error, table, write_report
 
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.model.library import ModelLibrary
 from vehicle_pose.photo import load_photo
-from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
+
+from common import parse_options, perturbed, photoreal_cases, projection_error, table, write_report
 
 SUCCESS_PX = 5.0
 
@@ -78,7 +79,8 @@ def sweep(n: int) -> dict:
 def losses(n: int) -> dict:
     rows, runs = [], {}
     cases = [(m, r, t, p, perturbed(t, rng, 10.0)) for m, r, t, p, rng in synthetic_cases(n, seed=1)]
-    for loss in ("invariant", "invariant-paper", "invariant-parts", "correlation", "squared", "silhouette-iou", "mutual-information"):
+    for loss in ("invariant", "invariant-paper", "invariant-parts", "correlation", "squared", "silhouette-iou",
+                 "mutual-information"):
         for color in ((False, True) if loss == "invariant" else (False,)):
             opts = RegistrationOptions(loss=loss, color=color)
             out = [run_one(m, r, p, t, s, opts) for m, r, t, p, s in cases]
@@ -115,11 +117,14 @@ def main() -> None:
     ap.add_argument("--part", default="all", choices=("sweep", "losses", "photoreal", "all"))
     ap.add_argument("--cases", type=int, default=8)
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "bench")
-    ap.add_argument("--start", default="init.json", help="start file of the photoreal cases (init.json, init_hard.json)")
+    ap.add_argument("--start", default="init.json",
+                    help="start file of the photoreal cases (init.json, init_hard.json)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a RegistrationOptions field for the photoreal part, e.g. parametrization=view (repeatable)")
-    ap.add_argument("--oracle-mask", action="store_true", help="photoreal: give the true mask instead of GrabCut (a ceiling)")
-    ap.add_argument("--no-box", action="store_true", help="photoreal: give only the start camera, not the start file's box")
+    ap.add_argument("--oracle-mask", action="store_true",
+                    help="photoreal: give the true mask instead of GrabCut (a ceiling)")
+    ap.add_argument("--no-box", action="store_true",
+                    help="photoreal: give only the start camera, not the start file's box")
     ap.add_argument("--tag", default="", help="suffix of the photoreal report's name")
     args = ap.parse_args()
     if args.part in ("sweep", "all"):
@@ -128,7 +133,8 @@ def main() -> None:
         print(write_report("accuracy_losses", losses(args.cases)))
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
-            name = "accuracy_photoreal" + ("_hard" if "hard" in args.start else "") + (f"_{args.tag}" if args.tag else "")
+            name = ("accuracy_photoreal" + ("_hard" if "hard" in args.start else "")
+                    + (f"_{args.tag}" if args.tag else ""))
             options = parse_options(args.option)
             data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask, use_box=not args.no_box)
             data["options"] = options.flat()

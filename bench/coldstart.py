@@ -37,11 +37,11 @@ sys.path.insert(0, str(HERE))
 ROOT = HERE.parent
 CLI = [sys.executable, "-m", "vehicle_pose.cli"]
 
-from common import table, write_report  # noqa: E402
-
 from vehicle_pose.geometry.camera import look_at_camera  # noqa: E402
 from vehicle_pose.model.library import ModelLibrary  # noqa: E402
 from vehicle_pose.model.metadata import parse_axis  # noqa: E402
+
+from common import table, write_report  # noqa: E402
 
 
 def _run(cmd: list[str], env: dict[str, str]) -> tuple[float, subprocess.CompletedProcess[str]]:
@@ -99,7 +99,8 @@ def _cases(args: argparse.Namespace, work: Path) -> list[dict]:
     for mid in lib.ids():
         photo, init = (ROOT / "examples/sedan.jpg", ROOT / "examples/sedan_init.json") if mid == "sedan" \
             else _synthetic_case(mid, work)
-        cases.append({"id": mid, "spec": str(lib.info(mid).mesh_path), "axes": [lib.info(mid).up, lib.info(mid).forward],
+        cases.append({"id": mid, "spec": str(lib.info(mid).mesh_path),
+                      "axes": [lib.info(mid).up, lib.info(mid).forward],
                       "photo": photo, "init": init, "kind": "shipped"})
     bench = args.shared / "bench"
     if (bench / "models.json").is_file():
@@ -156,9 +157,11 @@ def measure(case: dict, work: Path) -> dict:
     faces = int(done.stderr.split("(")[1].split(" faces")[0]) if "(" in done.stderr else 0
     loads = []
     for _ in range(3):
-        _, out = _run([sys.executable, "-c", _LOAD, case["spec"], *case["axes"], str(cache / "prepared"), *textures], env)
+        _, out = _run([sys.executable, "-c", _LOAD, case["spec"], *case["axes"], str(cache / "prepared"), *textures],
+                      env)
         loads.append(float(out.stdout.strip().splitlines()[-1]))
-    register = [*CLI, "register", str(case["photo"]), "--model", case["spec"], *axes, "--init-camera", str(case["init"]), *extra]
+    register = [*CLI, "register", str(case["photo"]), "--model", case["spec"], *axes, "--init-camera",
+                str(case["init"]), *extra]
     cold_out, warm_out = work / f"{case['id']}-cold.json", work / f"{case['id']}-warm.json"
     cold_s, _ = _run([*register, "--out", str(cold_out), "--no-cache"], env)
     warm_s, _ = _run([*register, "--out", str(warm_out)], env)
@@ -192,7 +195,8 @@ def main() -> None:
             row = measure(case, work)
             rows.append(row)
             print(f"{row['model']:<20} prepare {row['prepare_s']:6.1f} s  load {row['load_s']:.3f} s  "
-                  f"cold {row['cold_wall_s']:5.1f} s  warm {row['warm_wall_s']:5.1f} s / engine {row['engine_s']:5.1f} s  "
+                  f"cold {row['cold_wall_s']:5.1f} s  warm {row['warm_wall_s']:5.1f} s "
+                  f"/ engine {row['engine_s']:5.1f} s  "
                   f"same {row['same']:.1e}", flush=True)
     columns = ["model", "kind", "faces", "mesh_mb", "prepare_s", "load_s", "cold_wall_s", "cold_engine_s",
                "warm_wall_s", "engine_s", "warm_ratio", "same"]

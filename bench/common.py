@@ -17,8 +17,8 @@ from scipy.spatial.transform import Rotation
 from vehicle_pose import RegistrationOptions
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import projection_error as _projection_error
-from vehicle_pose.render.gl import get_context
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
+from vehicle_pose.render.gl import get_context
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -33,8 +33,8 @@ def table(rows: list[dict], columns: list[str]) -> str:
 
     cells = [[fmt(r.get(c, "")) for c in columns] for r in rows]
     widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
-    lines = [" | ".join(c.ljust(w) for c, w in zip(columns, widths)), "-+-".join("-" * w for w in widths)]
-    lines += [" | ".join(v.ljust(w) for v, w in zip(row, widths)) for row in cells]
+    lines = [" | ".join(c.ljust(w) for c, w in zip(columns, widths, strict=True)), "-+-".join("-" * w for w in widths)]
+    lines += [" | ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)) for row in cells]
     return "\n".join(lines)
 
 

@@ -19,15 +19,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import parse_options, photoreal_cases, projection_error, table, write_report
 
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.registration.identify import identify
 from vehicle_pose.model.library import ModelLibrary
 from vehicle_pose.photo import load_photo
-from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.registration.identify import identify
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, random_framed_view, synthesize
+
+from common import parse_options, photoreal_cases, projection_error, table, write_report
 
 SUCCESS_PX = 5.0
 
@@ -96,7 +97,8 @@ def photoreal(shared: Path, options: RegistrationOptions, oracle: bool = False) 
         r |= {"case": case.name, "model": model.info.id}
         _print(r, f"{case.name} {model.info.id}")
         runs.append(r)
-    rows = [summarise({"model": mid}, [r for r in runs if r["model"] == mid]) for mid in sorted({r["model"] for r in runs})]
+    rows = [summarise({"model": mid},
+                      [r for r in runs if r["model"] == mid]) for mid in sorted({r["model"] for r in runs})]
     rows.append(summarise({"model": "all"}, runs))
     print(table(rows, list(rows[0])))
     return {"rows": rows, "runs": runs}
@@ -106,7 +108,7 @@ def identification(n: int, options: RegistrationOptions) -> dict:
     lib = ModelLibrary()
     candidates = [lib.load(mid) for mid in lib.ids()]
     runs = []
-    for model, renderer, truth, photo, view in synthetic_cases(n, seed=11):
+    for model, renderer, truth, photo, _view in synthetic_cases(n, seed=11):
         t = time.perf_counter()
         ranking = identify(photo, candidates, options=options, renderer=renderer)
         best = ranking[0]
@@ -145,7 +147,8 @@ def main() -> None:
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
             data = photoreal(args.shared, options, oracle=args.oracle_mask)
-            print(write_report("nohint_photoreal" + suffix, data | {"options": options.flat(), "oracle_mask": args.oracle_mask}))
+            print(write_report("nohint_photoreal" + suffix,
+                               data | {"options": options.flat(), "oracle_mask": args.oracle_mask}))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")
     if args.part in ("identify", "all"):

@@ -20,15 +20,16 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from common import RESULTS, parse_options, table, write_report
 
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
-from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.photo import load_photo
-from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.render.renderer import Renderer
+
+from common import RESULTS, parse_options, table, write_report
 
 WORSE_DEG = 2.0
 """A case that ends more than this many degrees further from the annotation than it started."""
@@ -79,7 +80,8 @@ def summarise(label: dict, runs: list[dict]) -> dict:
         "median box iou": float(np.median([r["box_iou"] for r in runs])),
         "acc pi/6 %": 100.0 * float(np.mean(final <= 30.0)),
         "within 10 %": 100.0 * float(np.mean(final <= 10.0)),
-        "worse by 2": int(sum(r["start_deg"] is not None and r["final_deg"] > r["start_deg"] + WORSE_DEG for r in runs)),
+        "worse by 2": int(sum(r["start_deg"] is not None and r["final_deg"] > r["start_deg"] + WORSE_DEG
+                              for r in runs)),
         "flagged": int(flagged.sum()),
         "wrong unflagged": int((wrong & ~flagged).sum()),
         "right flagged": int((~wrong & flagged).sum()),
@@ -153,7 +155,8 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         left = draw_overlay(photo, model.lod(16384), start_cam, renderer=renderer, wheels=model.wheels)
         right = draw_overlay(photo, model.lod(16384), res.camera, renderer=renderer, wheels=model.wheels)
         tiles.append((_label(left, f"{case.name} start {start_txt}"),
-                      _label(right, f"final {r['final_deg']:.1f} deg box {r['box_iou']:.2f}{' FLAGGED' if r['failed'] else ''}")))
+                      _label(right, f"final {r['final_deg']:.1f} deg box {r['box_iou']:.2f}"
+                                    f"{' FLAGGED' if r['failed'] else ''}")))
     rows = [summarise({"start": start_name}, runs)]
     print(table(rows, list(rows[0])))
     return {"rows": rows, "runs": runs}, contact_sheet(tiles)
@@ -162,7 +165,8 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "real")
-    ap.add_argument("--start", default="init.json", help="start file of each case (init.json, init_box.json), gt (init.json turned to the "
+    ap.add_argument("--start", default="init.json",
+                    help="start file of each case (init.json, init_box.json), gt (init.json turned to the "
                     "annotated rotation) or none")
     ap.add_argument("--cases", type=int, default=None, help="only the first N cases")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",

@@ -24,31 +24,31 @@ import json
 from pathlib import Path
 
 import numpy as np
-from common import RESULTS, parse_options, table, write_report
 from real import load_models
 
-from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.loss.edges import EdgeLoss
-from vehicle_pose.errors import CameraError, PoseError
-from vehicle_pose.metrics import rotation_error
-
-from vehicle_pose.loss.invariant import make_target
-from vehicle_pose.loss.alternatives import make_loss
-from vehicle_pose.search.optimize import NelderMeadRestarts
-from vehicle_pose.render.overlay import draw_overlay, save_png
-from vehicle_pose.photo import load_photo
 from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.errors import CameraError, PoseError
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.parametrize import ViewParams
-from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.loss.alternatives import make_loss
+from vehicle_pose.loss.edges import EdgeLoss
+from vehicle_pose.loss.invariant import make_target
+from vehicle_pose.metrics import rotation_error
+from vehicle_pose.photo import load_photo, resized, resized_mask
+from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.search.optimize import NelderMeadRestarts
 from vehicle_pose.segment.grabcut import grabcut_foreground
+
+from common import RESULTS, parse_options, table, write_report
 
 
 class Objective:
     """The search's objective on one photo and mask (the box term left out: it is zero within
     the box's tolerance, where both poses lie)."""
 
-    def __init__(self, work: np.ndarray, mask: np.ndarray, options: RegistrationOptions, renderer: Renderer, mesh) -> None:
+    def __init__(self, work: np.ndarray, mask: np.ndarray, options: RegistrationOptions, renderer: Renderer,
+                 mesh) -> None:
         self.loss = make_loss(options.loss, make_target(work, mask, color=options.color))
         self.edges = EdgeLoss(work, foreground=mask) if options.terms.edge_weight > 0 else None
         self.weight, self.renderer, self.mesh = options.terms.edge_weight, renderer, mesh

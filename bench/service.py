@@ -21,15 +21,16 @@ from datetime import datetime
 from pathlib import Path
 
 import numpy as np
+
 from common import perturbed, projection_error, table, write_report
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from service_stack import encode, start_stack  # noqa: E402  (the tests' launcher of the real service)
-
 from vehicle_pose.geometry.camera import Camera, look_at_camera  # noqa: E402
 from vehicle_pose.model.library import ModelLibrary  # noqa: E402
 from vehicle_pose.model.metadata import parse_axis  # noqa: E402
 from vehicle_pose.render.synth import LIGHTINGS, synthesize  # noqa: E402
+
+from service_stack import encode, start_stack  # noqa: E402  (the tests' launcher of the real service)
 
 
 def make_cases(n: int, seed: int = 0) -> list[tuple[bytes, Camera, Camera]]:
@@ -57,13 +58,15 @@ def run(workers: int, cases: list[tuple[bytes, Camera, Camera]], pollers: int, p
         stack = start_stack(Path(tmp), workers=workers)
         try:
             with stack.client() as c:
-                warm = c.post("/v1/registrations", data={"model_id": "sedan", "init_camera": json.dumps(cases[0][2].to_dict())},
+                warm = c.post("/v1/registrations",
+                              data={"model_id": "sedan", "init_camera": json.dumps(cases[0][2].to_dict())},
                               files={"photo": ("w.png", cases[0][0], "image/png")}).json()["id"]
                 _wait(c, [warm])
                 t0 = time.monotonic()
                 ids = []
                 for photo, _, start in cases:
-                    r = c.post("/v1/registrations", data={"model_id": "sedan", "init_camera": json.dumps(start.to_dict())},
+                    r = c.post("/v1/registrations",
+                               data={"model_id": "sedan", "init_camera": json.dumps(start.to_dict())},
                                files={"photo": ("car.png", photo, "image/png")})
                     r.raise_for_status()
                     ids.append(r.json()["id"])
@@ -81,8 +84,9 @@ def run(workers: int, cases: list[tuple[bytes, Camera, Camera]], pollers: int, p
             stack.stop()
     to_result = [_seconds(b["created_at"], b["finished_at"]) for b in bodies]
     errors = [
-        projection_error(points, Camera.from_dict(b["result"]["camera"]), truth) if b["status"] == "succeeded" else np.inf
-        for b, (_, truth, _) in zip(bodies, cases)
+        projection_error(points, Camera.from_dict(b["result"]["camera"]),
+                         truth) if b["status"] == "succeeded" else np.inf
+        for b, (_, truth, _) in zip(bodies, cases, strict=True)
     ]
     lat = np.array(latencies) * 1000.0
     return {
@@ -132,7 +136,8 @@ def main() -> None:
     cases = make_cases(args.jobs)
     points = ModelLibrary().load("sedan").mesh.sample_points(3000)
     rows = [run(w, cases, args.pollers, points) for w in args.workers]
-    columns = ["workers", "jobs", "jobs_per_min", "p50_result_s", "p95_result_s", "status_polls", "poll_p50_ms", "poll_p95_ms", "success"]
+    columns = ["workers", "jobs", "jobs_per_min", "p50_result_s", "p95_result_s", "status_polls", "poll_p50_ms",
+               "poll_p95_ms", "success"]
     print(table(rows, columns))
     print(f"report: {write_report('service', {'args': vars(args), 'rows': rows})}")
 

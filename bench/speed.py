@@ -15,21 +15,22 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import photoreal_cases, table, write_report
 
+from vehicle_pose import RegistrationOptions
 from vehicle_pose.geometry.camera import Camera, look_at_camera
-from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.loss.invariant import make_target
 from vehicle_pose.loss.alternatives import LOSSES, make_loss
+from vehicle_pose.loss.invariant import make_target
+from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.model.loading import load_mesh
 from vehicle_pose.model.metadata import ModelInfo
-from vehicle_pose.photo import load_photo
-from vehicle_pose import RegistrationOptions
-from vehicle_pose.registration.fit import face_budget
 from vehicle_pose.model.procedural import SEDAN, build_car
+from vehicle_pose.photo import load_photo
+from vehicle_pose.registration.fit import face_budget
 from vehicle_pose.render.exterior import exterior_faces
 from vehicle_pose.render.renderer import Frame, Renderer
 from vehicle_pose.render.synth import synthesize
+
+from common import photoreal_cases, table, write_report
 
 
 def dense_sedan(target_faces: int, tmp: str) -> VehicleModel:

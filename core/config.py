@@ -59,7 +59,8 @@ class Settings(BaseSettings):
         if self.job_soft_time_limit_s >= self.job_hard_time_limit_s:
             raise ValueError("job_soft_time_limit_s must be below job_hard_time_limit_s")
         if self.visibility_timeout_s <= self.job_hard_time_limit_s:
-            raise ValueError("visibility_timeout_s must exceed job_hard_time_limit_s, or running jobs are delivered twice")
+            raise ValueError("visibility_timeout_s must exceed job_hard_time_limit_s, "
+                             "or running jobs are delivered twice")
         if self.environment == "production":
             if self.database_url.startswith("sqlite"):
                 raise ValueError("production needs a server database (VP_DATABASE_URL), not SQLite")

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from vehicle_pose import ModelLibrary, ModelStore
-
 from core.config import get_settings
+from vehicle_pose import ModelLibrary, ModelStore
 
 
 @lru_cache

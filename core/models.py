@@ -34,7 +34,7 @@ class Base(DeclarativeBase):
     pass
 
 
-class JobStatus(str, enum.Enum):
+class JobStatus(str, enum.Enum):  # noqa: UP042 (StrEnum would change str(), which the records store)
     queued = "queued"
     running = "running"
     succeeded = "succeeded"

@@ -12,9 +12,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Protocol
 
-from vehicle_pose.files import write_atomic
-
 from core.config import Settings, get_settings
+from vehicle_pose.files import write_atomic
 
 
 class ObjectMissing(KeyError):
@@ -106,7 +105,8 @@ class S3Storage:
     def get(self, key: str) -> bytes:
         with self._reachable():
             try:
-                return self._client.get_object(Bucket=self.bucket, Key=self._key(key))["Body"].read()
+                body: bytes = self._client.get_object(Bucket=self.bucket, Key=self._key(key))["Body"].read()
+                return body
             except self._client.exceptions.NoSuchKey:
                 raise ObjectMissing(key) from None
 

@@ -7,10 +7,10 @@ import pytest
 import trimesh
 
 from vehicle_pose.geometry.camera import Camera, look_at_camera
-from vehicle_pose.render.gl import get_context
 from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.mesh import Mesh, Part
 from vehicle_pose.model.metadata import parse_axis
+from vehicle_pose.render.gl import get_context
 from vehicle_pose.render.renderer import Renderer
 
 

@@ -70,7 +70,8 @@ class Stack:
                 self.proc.wait()
 
 
-def start_stack(data_dir: Path, *, workers: int = 2, extra_env: dict[str, str] | None = None, drain: float = 5.0) -> Stack:
+def start_stack(data_dir: Path, *, workers: int = 2, extra_env: dict[str, str] | None = None,
+                drain: float = 5.0) -> Stack:
     port = free_port()
     log = data_dir / "service.log"
     env = {k: v for k, v in os.environ.items() if not k.startswith("VP_")}
@@ -101,7 +102,8 @@ def start_stack(data_dir: Path, *, workers: int = 2, extra_env: dict[str, str] |
     raise RuntimeError(f"the service was not ready within 120 s:\n{stack.log_tail()}")
 
 
-def wait_for(client: httpx.Client, job_id: str, *, timeout: float = 120.0, until: tuple[str, ...] = ("succeeded", "failed")) -> dict:
+def wait_for(client: httpx.Client, job_id: str, *, timeout: float = 120.0,
+             until: tuple[str, ...] = ("succeeded", "failed")) -> dict:
     """Poll a job until its status is one of ``until``; returns its last body."""
     deadline = time.monotonic() + timeout
     body: dict = {}

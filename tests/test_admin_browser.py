@@ -7,12 +7,13 @@ import shutil
 from pathlib import Path
 
 import pytest
-from conftest import view
 from playwright.sync_api import sync_playwright
-from service_stack import encode, wait_for
 from test_register import perturbed
 
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
+
+from conftest import view
+from service_stack import encode, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -49,7 +50,8 @@ def test_admin_page_lists_and_opens_a_finished_job(service, browser, sedan, rend
     refused.close()
 
     context = browser.new_context(
-        http_credentials={"username": "admin", "password": service.keys["admin"]}, viewport={"width": 1280, "height": 900}
+        http_credentials={"username": "admin", "password": service.keys["admin"]},
+        viewport={"width": 1280, "height": 900}
     )
     page = context.new_page()
     assert page.goto(f"{service.url}/admin").status == 200

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import view
 
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import rotation_error
-from vehicle_pose.search.views import box_overflow, fit_to_box
 from vehicle_pose.render.synth import border_crop_camera
+from vehicle_pose.search.views import box_overflow, fit_to_box
+
+from conftest import view
 
 
 def _projected_box(camera: Camera, points: np.ndarray, clip: bool = False) -> np.ndarray:

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from vehicle_pose.geometry.camera import MAX_MAGNITUDE, Camera
 from vehicle_pose.errors import CameraError
+from vehicle_pose.geometry.camera import MAX_MAGNITUDE, Camera
 
 BASE = {"K": [[500, 0, 160], [0, 500, 120], [0, 0, 1]], "R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 5],
         "width": 320, "height": 240}
@@ -43,7 +43,8 @@ def test_a_camera_file_that_json_cannot_hold_is_a_camera_error(tmp_path, text):
 
 
 def test_a_camera_for_another_aspect_ratio_is_refused_not_stretched():
-    cam = Camera(np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.eye(3), np.array([0, 0, 10.0]), 640, 480)
+    cam = Camera(np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.eye(3), np.array([0, 0, 10.0]), 640,
+                 480)
     assert cam.for_photo(640, 480) is cam
     half = cam.for_photo(320, 240)
     assert half.K[0, 0] == pytest.approx(250.0) and half.K[1, 1] == pytest.approx(250.0)

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import view
 
 from vehicle_pose.loss.edges import ORIENTATIONS, EdgeLoss, photo_edges
 from vehicle_pose.render.renderer import Frame
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
+
+from conftest import view
 
 H, W = 120, 160
 

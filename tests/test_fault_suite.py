@@ -14,12 +14,13 @@ import time
 
 import httpx
 import pytest
-from conftest import view
-from service_stack import encode
 from test_register import perturbed
-from topology import Topology
 
 from vehicle_pose.render.synth import synthesize
+
+from conftest import view
+from service_stack import encode
+from topology import Topology
 
 JOBS = 50
 
@@ -53,7 +54,8 @@ def _wait_running(topo: Topology, ids: list[str], timeout: float = 60.0) -> None
             return
         time.sleep(0.3)
     seen = collections.Counter(b["status"] for b in bodies.values())
-    raise AssertionError(f"no job running after {timeout} s: {dict(seen)}\n{topo.log.read_text(errors='replace')[-3000:]}")
+    log = topo.log.read_text(errors="replace")[-3000:]
+    raise AssertionError(f"no job running after {timeout} s: {dict(seen)}\n{log}")
 
 
 @pytest.mark.slow
@@ -109,7 +111,8 @@ def test_fifty_jobs_through_every_fault_end_succeeded_or_failed_with_a_reason(tm
             if b["status"] == "failed":
                 assert b["error"]["type"].startswith("/problems/") and b["error"]["detail"], b
         assert outcome["succeeded"] >= 0.8 * JOBS, f"{outcome} after {faults}\n{log}"
-        failed = [f"{b['error']['type']}: {b['error']['detail'][:300]}" for b in ended.values() if b["status"] == "failed"]
+        failed = [f"{b['error']['type']}: {b['error']['detail'][:300]}"
+                  for b in ended.values() if b["status"] == "failed"]
         print(f"fault suite: {dict(outcome)} after {faults}; failures: {failed}")
     finally:
         topo.stop_all()

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import projection_error, view
 from test_register import perturbed
 
-from vehicle_pose.geometry.camera import Camera
 from vehicle_pose import register
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.render.synth import HAZARDS, border_crop_camera, synthesize_hazard
+
+from conftest import projection_error, view
 
 pytestmark = pytest.mark.slow
 

@@ -150,7 +150,8 @@ def test_parts_loss_equals_the_channel_matrix_form(n, weighted):
     assert PartsInvariantLoss(target)(frame) == pytest.approx(expected, rel=1e-10, abs=1e-13)
     # One material only: its indicator is the coverage channel.
     frame1 = Frame(attrs, (labels > 0).astype(np.uint8), 8, 6, W, H)
-    assert PartsInvariantLoss(target)(frame1) == pytest.approx(InvariantLoss(target, channels=part_channels)(frame1), rel=1e-10)
+    assert PartsInvariantLoss(target)(frame1) == pytest.approx(InvariantLoss(target, channels=part_channels)(frame1),
+                                                               rel=1e-10)
     assert PartsInvariantLoss(target)(Frame.empty(W, H)) == float(min(n, 10))
 
 

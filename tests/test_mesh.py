@@ -36,7 +36,8 @@ def test_every_format_loads_in_file_coordinates(tmp_path, fmt):
 
 def test_scene_transforms_are_applied(tmp_path):
     scene = trimesh.Scene()
-    scene.add_geometry(trimesh.creation.box(extents=(1, 1, 1)), transform=trimesh.transformations.translation_matrix([5, 0, 0]))
+    scene.add_geometry(trimesh.creation.box(extents=(1, 1, 1)),
+                       transform=trimesh.transformations.translation_matrix([5, 0, 0]))
     path = tmp_path / "scene.glb"
     scene.export(path)
     assert load_mesh(path).bounds[0, 0] == pytest.approx(4.5)
@@ -167,7 +168,7 @@ def test_a_level_of_detail_that_loses_the_outline_falls_back_to_more_faces():
 def test_decimation_keeps_small_parts_whole_and_takes_faces_from_the_body(sedan):
     coarse = sedan.mesh.decimated(4096)
     assert coarse.n_faces <= 4096
-    for full, part in zip(sedan.mesh.parts, coarse.parts):
+    for full, part in zip(sedan.mesh.parts, coarse.parts, strict=True):
         if full.kind in ("wheel", "tyre", "light"):
             assert len(part.faces) == len(full.faces)
     body = [p for p in coarse.parts if p.kind == "body"][0]

@@ -6,27 +6,28 @@ import json
 
 import numpy as np
 import pytest
-from conftest import projection_error, view
 
-from vehicle_pose.geometry.camera import Camera
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.cli import main
 from vehicle_pose.errors import ModelError, UnknownModelError
-from vehicle_pose.registration.identify import identify
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import rotation_error
+from vehicle_pose.model.library import LOD_AGREEMENT, ModelLibrary, install_model
+from vehicle_pose.model.mesh import KINDS
+from vehicle_pose.registration.credibility import confidence
+from vehicle_pose.registration.identify import identify
+from vehicle_pose.render.overlay import save_png
+from vehicle_pose.render.synth import LIGHTINGS, _background, synthesize
 from vehicle_pose.search.views import (
     distinct,
     score_cameras,
     view_camera,
     view_search,
 )
-from vehicle_pose.model.library import LOD_AGREEMENT, ModelLibrary, install_model
-from vehicle_pose.model.mesh import KINDS
-from vehicle_pose.render.overlay import save_png
-from vehicle_pose import RegistrationOptions, register
-from vehicle_pose.registration.credibility import confidence
-from vehicle_pose.segment.region import VehicleRegion, find_vehicle
-from vehicle_pose.render.synth import LIGHTINGS, _background, synthesize
 from vehicle_pose.search.wheels import detect_wheels, wheel_candidates
+from vehicle_pose.segment.region import VehicleRegion, find_vehicle
+
+from conftest import projection_error, view
 
 BODY_TYPES = ("sedan", "hatchback", "suv", "van", "pickup")
 
@@ -185,7 +186,8 @@ def test_a_near_rear_view_with_a_short_lens_is_refined_down_its_valley(library, 
     truth = view_camera(hatchback, 179.0, 10.0, 0.0, box, W, H, 0.82 * W)
     photo, _ = synthesize(hatchback.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=5)
     cma = register(photo, hatchback, renderer=renderer)
-    simplex = register(photo, hatchback, renderer=renderer, options=RegistrationOptions.from_flat(refine_optimizer="nelder-mead"))
+    simplex = register(photo, hatchback, renderer=renderer,
+                       options=RegistrationOptions.from_flat(refine_optimizer="nelder-mead"))
     assert projection_error(hatchback, cma.camera, truth) < 2.0 and not cma.failed
     assert projection_error(hatchback, simplex.camera, truth) > 4.0
     assert cma.loss < simplex.loss
@@ -221,7 +223,7 @@ def test_a_photo_without_a_vehicle_is_flagged_failed(library, renderer):
 def test_identification_picks_the_right_body_type(library, renderer):
     candidates = [library.load(m) for m in ("sedan", "van", "pickup")]
     options = RegistrationOptions.from_flat(starts=3, refine=1, max_size=320, screen_size=160)
-    for model, azimuth in zip(candidates, (60.0, 230.0, 120.0)):
+    for model, azimuth in zip(candidates, (60.0, 230.0, 120.0), strict=True):
         truth = view(model, azimuth, 12.0, focal=500.0, distance=11.0, width=320, height=240)
         photo, _ = synthesize(model.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=9)
         ranking = identify(photo, candidates, options=options, renderer=renderer)

@@ -25,7 +25,8 @@ def valley(x: np.ndarray) -> float:
 
 
 def test_minimises_a_round_bowl_to_its_tolerance():
-    res = NelderMeadRestarts()(lambda x: float(np.sum((x - 0.3) ** 2)), np.zeros(7), np.full(7, 0.1), max_evaluations=2000)
+    res = NelderMeadRestarts()(lambda x: float(np.sum((x - 0.3) ** 2)), np.zeros(7), np.full(7, 0.1),
+                               max_evaluations=2000)
     np.testing.assert_allclose(res.x, 0.3, atol=0.02)
     assert res.fun < 1e-3
 

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import projection_error, view
 from test_register import perturbed
 
-from vehicle_pose.geometry.parametrize import ThetaParams, ViewParams
 from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.geometry.parametrize import ThetaParams, ViewParams
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
+
+from conftest import projection_error, view
 
 
 def test_view_origin_is_the_reference(sedan):
@@ -88,7 +89,8 @@ def test_given_mask_and_resegmentation(sedan, renderer):
     assert np.array_equal(given.foreground, mask)
     # The < 1 px acceptance runs are in test_register; here the mechanics are under test.
     assert projection_error(sedan, given.camera, truth) < 2.0
-    again = register(photo, sedan, init_camera=start, renderer=renderer, options=RegistrationOptions.from_flat(resegment=True))
+    again = register(photo, sedan, init_camera=start, renderer=renderer,
+                     options=RegistrationOptions.from_flat(resegment=True))
     assert projection_error(sedan, again.camera, truth) < 2.0
     with pytest.raises(ValueError, match="foreground"):
         register(photo, sedan, init_camera=start, renderer=renderer, foreground=mask[:10])

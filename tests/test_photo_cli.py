@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from vehicle_pose import RegistrationOptions
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 from vehicle_pose.photo import decode_photo, verify_photo
-from vehicle_pose import RegistrationOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,7 +27,8 @@ def _encode(img: Image.Image, fmt: str, **kw) -> bytes:
 
 def test_decodes_every_mode():
     rgb = Image.fromarray(np.random.default_rng(0).integers(0, 255, (20, 30, 3), dtype=np.uint8))
-    for img, fmt in [(rgb, "PNG"), (rgb.convert("L"), "PNG"), (rgb.convert("RGBA"), "PNG"), (rgb.convert("CMYK"), "JPEG"),
+    for img, fmt in [(rgb, "PNG"), (rgb.convert("L"), "PNG"), (rgb.convert("RGBA"), "PNG"),
+                     (rgb.convert("CMYK"), "JPEG"),
                      (rgb.convert("P"), "PNG"), (Image.fromarray(np.full((20, 30), 40000, np.uint16)), "PNG")]:
         arr = decode_photo(_encode(img, fmt))
         assert arr.shape == (20, 30, 3) and arr.dtype == np.uint8
@@ -97,9 +98,9 @@ def test_cli_registers_the_shipped_sample(tmp_path):
     assert result["model"]["id"] == "sedan" and result["start"]["source"] == "init_camera"
     with Image.open(overlay) as img:
         assert img.size == (800, 600)
-    from conftest import projection_error
-
     from vehicle_pose import Camera, ModelLibrary
+
+    from conftest import projection_error
 
     model = ModelLibrary().load("sedan")
     truth = Camera.load(ROOT / "examples" / "sedan_truth.json")
@@ -126,7 +127,8 @@ def test_cli_options_reach_the_engine(tmp_path):
         (["register", "pyproject.toml", "--model", "sedan", "--out", "x.json"], "not a readable image"),
         (["register", "missing.jpg", "--model", "sedan", "--out", "x.json"], "cannot read photo"),
         (["register", "examples/sedan.jpg", "--model", "no-such-car", "--out", "x.json"], "unknown model"),
-        (["register", "examples/sedan.jpg", "--model", "sedan", "--out", "x.json", "--init-camera", "pyproject.toml"], "not valid JSON"),
+        (["register", "examples/sedan.jpg", "--model", "sedan", "--out", "x.json", "--init-camera", "pyproject.toml"],
+         "not valid JSON"),
         (["register", "examples/sedan.jpg", "--model", "sedan", "--out", "x.json", "--bbox", "1,2"], "bbox"),
         (["register", "examples/sedan.jpg", "--out", "x.json"], "--model"),
     ],
@@ -144,8 +146,10 @@ def test_cli_empty_mesh_and_bad_camera_json(tmp_path):
     proc = _cli("register", "examples/sedan.jpg", "--model", str(empty), "--out", str(tmp_path / "r.json"))
     assert proc.returncode == 2 and "no faces" in proc.stderr
     cam = tmp_path / "cam.json"
-    cam.write_text(json.dumps({"K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 1], "width": 10, "height": 10}))
-    proc = _cli("register", "examples/sedan.jpg", "--model", "sedan", "--init-camera", str(cam), "--out", str(tmp_path / "r.json"))
+    cam.write_text(json.dumps({"K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]],
+                               "t": [0, 0, 1], "width": 10, "height": 10}))
+    proc = _cli("register", "examples/sedan.jpg", "--model", "sedan", "--init-camera", str(cam), "--out",
+                str(tmp_path / "r.json"))
     assert proc.returncode == 2 and "rotation" in proc.stderr
 
 

@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import PoseError
-from vehicle_pose.model.metadata import WheelGeometry
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.pose import Theta, camera_to_theta, theta_to_camera, visible_side
+from vehicle_pose.model.metadata import WheelGeometry
 
 WHEELS = WheelGeometry(np.array([-1.3, 0.02, 0.31]), np.array([1.4, 0.02, 0.31]), np.array([0.0, 1.0, 0.0]), 1.56, 0.31)
 W, H = 640, 480
@@ -76,7 +76,8 @@ def test_camera_theta_camera_round_trip(theta):
 
 
 def test_normalised_vector_round_trip():
-    theta = Theta(np.array([200.0, 300.0]), np.array([-250.0, 12.0]), np.array([0.3, 0.1, -np.sqrt(0.9)]), 1500.0, "left")
+    theta = Theta(np.array([200.0, 300.0]), np.array([-250.0, 12.0]), np.array([0.3, 0.1, -np.sqrt(0.9)]), 1500.0,
+                  "left")
     x = theta.normalized(W, H)
     back = Theta.from_normalized(x, W, H, "left")
     np.testing.assert_allclose(back.vector(), theta.vector(), rtol=1e-12)
@@ -87,4 +88,5 @@ def test_out_of_domain_theta_is_refused():
     with pytest.raises(PoseError):
         Theta.from_normalized([0.5, 0.5, 0.3, 0.0, 0.9, 0.9, 1.0], W, H, "left")
     with pytest.raises(PoseError):
-        theta_to_camera(Theta(np.array([1.0, 1.0]), np.zeros(2), np.array([0, 0, -1.0]), 800.0, "left"), WHEELS.side("left"), W, H)
+        theta_to_camera(Theta(np.array([1.0, 1.0]), np.zeros(2), np.array([0, 0, -1.0]), 800.0, "left"),
+                        WHEELS.side("left"), W, H)

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import projection_error, view
 from scipy.spatial.transform import Rotation
 
-from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.errors import BlankPhotoError, CameraError, PoseError
 from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.errors import BlankPhotoError, CameraError, PoseError
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.parametrize import ViewParams
 from vehicle_pose.registration.fit import probe_factors
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
+
+from conftest import projection_error, view
 
 pytestmark = pytest.mark.slow
 
@@ -49,7 +50,8 @@ def test_coarse_to_fine_is_at_least_as_accurate_as_one_level(sedan, renderer):
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=11)
     start = perturbed(truth, 11)
     pyramid = register(photo, sedan, init_camera=start, renderer=renderer)
-    single = register(photo, sedan, init_camera=start, renderer=renderer, options=RegistrationOptions.from_flat(coarse_to_fine=False))
+    single = register(photo, sedan, init_camera=start, renderer=renderer,
+                      options=RegistrationOptions.from_flat(coarse_to_fine=False))
     assert len(pyramid.levels) == 3 and len(single.levels) == 1
     err_pyramid = projection_error(sedan, pyramid.camera, truth)
     assert err_pyramid < 1.0
@@ -62,7 +64,8 @@ def test_result_json_fields(sedan, renderer):
     result = register(photo, sedan, init_camera=perturbed(truth, 2, degrees=3.0), renderer=renderer,
                       options=RegistrationOptions.from_flat(max_evaluations=60))
     d = result.to_dict()
-    for key in ("camera", "theta", "loss", "evaluations", "restarts", "seconds", "model", "cam_R_m2c", "cam_t_m2c", "cam_K", "start"):
+    for key in ("camera", "theta", "loss", "evaluations", "restarts", "seconds", "model", "cam_R_m2c", "cam_t_m2c",
+                "cam_K", "start"):
         assert key in d
     assert d["camera"]["width"] == 320 and len(d["cam_R_m2c"]) == 9 and len(d["cam_K"]) == 9
     cam = Camera.from_dict(d["camera"])
@@ -109,7 +112,8 @@ def test_bad_hints_are_clear_errors(sedan, renderer):
             register(flat, sedan, init_camera=truth, renderer=renderer)
 
 
-@pytest.mark.parametrize("loss", ["invariant-paper", "correlation", "squared", "silhouette-iou", "mutual-information", "invariant-parts"])
+@pytest.mark.parametrize(
+    "loss", ["invariant-paper", "correlation", "squared", "silhouette-iou", "mutual-information", "invariant-parts"])
 def test_alternative_losses_run_through_the_same_pipeline(sedan, renderer, loss):
     truth = view(sedan, 60.0, 15.0, width=320, height=240, focal=450.0)
     photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=6)
@@ -129,7 +133,8 @@ def test_dolly_zooms_keep_centre_size_and_orientation(sedan):
         np.testing.assert_allclose(zoomed.R, cam.R, atol=1e-12)
         np.testing.assert_allclose(zoomed.project(centre[None]), cam.project(centre[None]), atol=1e-6)
         # The apparent size at the centre's depth is kept: f / depth is unchanged.
-        assert zoomed.focal / zoomed.to_camera(centre[None])[0, 2] == pytest.approx(cam.focal / cam.to_camera(centre[None])[0, 2])
+        depth, depth0 = zoomed.to_camera(centre[None])[0, 2], cam.to_camera(centre[None])[0, 2]
+        assert zoomed.focal / depth == pytest.approx(cam.focal / depth0)
 
 
 def test_a_start_with_the_wrong_perspective_is_recovered(sedan, renderer):

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from conftest import mesh_from_trimesh
 
 from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.render.exterior import exterior_faces
 from vehicle_pose.render.renderer import Frame
+
+from conftest import mesh_from_trimesh
 
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])
 

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import view
 
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.registration.segmentation import box_mask
-from vehicle_pose.segment.grabcut import grabcut_foreground
 from vehicle_pose.render.synth import synthesize
+from vehicle_pose.segment.grabcut import grabcut_foreground
+
+from conftest import view
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -16,14 +16,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from conftest import projection_error, view
 from PIL import Image
-from service_stack import SERVICE, children, encode, wait_for
 from test_register import perturbed
 
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import ModelLibrary
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
+
+from conftest import projection_error, view
+from service_stack import SERVICE, children, encode, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -43,7 +44,8 @@ def submit(client, photo: bytes, *, model_id: str = "sedan", start: Camera | Non
     data = {"model_id": model_id, **fields}
     if start is not None:
         data["init_camera"] = json.dumps(start.to_dict())
-    return client.post("/v1/registrations", data=data, files={"photo": (filename, photo, "image/jpeg")}, headers=headers)
+    return client.post("/v1/registrations", data=data, files={"photo": (filename, photo, "image/jpeg")},
+                       headers=headers)
 
 
 def assert_problem(r, status: int, slug: str) -> dict:
@@ -66,7 +68,8 @@ def test_upload_poll_result_and_overlay(service, scene, sedan):
         body = wait_for(c, job["id"])
         assert body["status"] == "succeeded", body
         result = body["result"]
-        for key in ("camera", "theta", "loss", "evaluations", "restarts", "seconds", "model", "cam_R_m2c", "cam_t_m2c", "cam_K"):
+        for key in ("camera", "theta", "loss", "evaluations", "restarts", "seconds", "model", "cam_R_m2c", "cam_t_m2c",
+                    "cam_K"):
             assert key in result
         assert result["start"]["source"] == "init_camera"
         assert projection_error(sedan, Camera.from_dict(result["camera"]), truth) < 2.0
@@ -120,7 +123,8 @@ def _bomb() -> bytes:
     raw = zlib.compress((b"\x00" + b"\x00" * 12000) * 12000, 9)
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 12000, 12000, 8, 0, 0, 0, 0)) + chunk(b"IDAT", raw) + chunk(b"IEND", b"")
+    header = chunk(b"IHDR", struct.pack(">IIBBBBB", 12000, 12000, 8, 0, 0, 0, 0))
+    return b"\x89PNG\r\n\x1a\n" + header + chunk(b"IDAT", raw) + chunk(b"IEND", b"")
 
 
 @pytest.mark.parametrize(
@@ -180,7 +184,8 @@ def test_oversize_upload_is_refused_while_streaming(service):
     def body():
         boundary = b"--vp-test-boundary"
         yield boundary + b'\r\nContent-Disposition: form-data; name="model_id"\r\n\r\nsedan\r\n'
-        yield boundary + b'\r\nContent-Disposition: form-data; name="photo"; filename="big.jpg"\r\nContent-Type: image/jpeg\r\n\r\n'
+        yield (boundary + b'\r\nContent-Disposition: form-data; name="photo"; filename="big.jpg"'
+               b"\r\nContent-Type: image/jpeg\r\n\r\n")
         for _ in range(limit // len(chunk) + 4):
             yield chunk
         yield b"\r\n" + boundary + b"--\r\n"
@@ -190,7 +195,8 @@ def test_oversize_upload_is_refused_while_streaming(service):
         assert declared.startswith(b"HTTP/1.1 413"), declared[:200]
         assert b"/problems/content-too-large" in declared
         streamed = c.post(
-            "/v1/registrations", content=body(), headers={"Content-Type": "multipart/form-data; boundary=vp-test-boundary"}
+            "/v1/registrations", content=body(),
+            headers={"Content-Type": "multipart/form-data; boundary=vp-test-boundary"}
         )
         assert_problem(streamed, 413, "content-too-large")
 
@@ -358,7 +364,8 @@ def test_models_listing_and_admin_upload(service, sedan, tmp_path):
         assert_problem(admin.post("/v1/models", data={**form, "model_id": "empty"}, files=empty), 422, "empty-mesh")
         same_axes = {**form, "model_id": "bad-axes", "forward": "+z"}
         assert_problem(admin.post("/v1/models", data=same_axes, files=files), 422, "invalid-model")
-        assert_problem(admin.post("/v1/models", data={**form, "model_id": "x"}, files={"mesh": ("a.exe", b"MZ", "x")}), 415, "unsupported-media-type")
+        assert_problem(admin.post("/v1/models", data={**form, "model_id": "x"}, files={"mesh": ("a.exe", b"MZ", "x")}),
+                       415, "unsupported-media-type")
         assert "uploaded-sedan" in [m["id"] for m in c.get("/v1/models").json()]
 
 
@@ -432,7 +439,8 @@ def test_workers_warm_the_library_and_prepare_uploads(service, sedan, tmp_path):
     scene.export(mesh)
     with service.client("admin") as admin:
         form = {"model_id": "bigger-sedan", "up": "+z", "forward": "+x", "units": "m"}
-        created = admin.post("/v1/models", data=form, files={"mesh": ("car.glb", mesh.read_bytes(), "model/gltf-binary")})
+        created = admin.post("/v1/models", data=form,
+                             files={"mesh": ("car.glb", mesh.read_bytes(), "model/gltf-binary")})
         assert created.status_code == 201, created.text
     entry = _prepared(mesh)
     assert entry is not None and entry["exteriors"] == {}  # parsed by the API at upload

@@ -11,8 +11,9 @@ import time
 from pathlib import Path
 
 import httpx
-from service_stack import encode, start_stack, wait_for
 from test_service_api import _redis, scene, submit  # noqa: F401 (scene is a fixture)
+
+from service_stack import encode, start_stack, wait_for
 
 
 def test_the_launcher_restarts_its_redis_and_the_service_carries_on(tmp_path, scene):  # noqa: F811

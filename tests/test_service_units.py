@@ -10,19 +10,20 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from conftest import view
 from pydantic import ValidationError
-from service_stack import encode, free_port
 from sqlalchemy import create_engine, inspect, select
 
+from app.uploads import sniff_image
 from core import config, db
 from core.config import Settings
 from core.migrate import alembic_config, upgrade
+from core.models import Client, JobStatus, Registration
 from core.security import create_client
 from core.storage import LocalStorage, ObjectMissing
-from core.models import Client, JobStatus, Registration
-from app.uploads import sniff_image
 from vehicle_pose.render.synth import synthesize
+
+from conftest import view
+from service_stack import encode, free_port
 
 
 def test_settings_refuse_unsafe_combinations(tmp_path):
@@ -169,11 +170,12 @@ def test_run_job_reports_bad_input_found_late(service_db, small_photo):
 
 
 def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, sedan):
-    from conftest import projection_error
     from test_register import perturbed
 
     from vehicle_pose.geometry.camera import Camera
     from worker.jobs import run_job
+
+    from conftest import projection_error
 
     client_id, store = service_db
     truth = small_photo[1]
@@ -261,7 +263,8 @@ def test_postgresql_migrations_jobs_and_metrics(postgres_url, monkeypatch, tmp_p
         with db.session_scope() as s:
             create_client(s, "pg-client")
             client_id = s.scalars(select(Client.id)).one()
-            job = Registration(client_id=client_id, model_id="sedan", photo_key="photos/p", photo_media_type="image/png",
+            job = Registration(client_id=client_id, model_id="sedan", photo_key="photos/p",
+                               photo_media_type="image/png",
                                photo_width=640, photo_height=480, options={"loss": "invariant"},
                                init_camera={"K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, bbox=[1.0, 2.0, 3.0, 4.0])
             s.add(job)

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.model.library import ModelLibrary, model_from_mesh
 from vehicle_pose.model.loading import load_mesh, oriented_faces
 from vehicle_pose.model.mesh import Mesh
-from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.model.store import ModelStore, default_budgets, default_cache_dir
 from vehicle_pose.render.synth import synthesize
 
@@ -28,7 +28,7 @@ SEDAN = ModelLibrary().info("sedan").mesh_path
 
 def _same(a: Mesh, b: Mesh) -> None:
     assert len(a.parts) == len(b.parts)
-    for p, q in zip(a.parts, b.parts):
+    for p, q in zip(a.parts, b.parts, strict=True):
         assert (p.name, p.kind, p.one_sided) == (q.name, q.kind, q.one_sided)
         for field in ("vertices", "normals", "faces", "albedo", "uv", "texture"):
             x, y = getattr(p, field), getattr(q, field)

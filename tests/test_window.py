@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-from conftest import view
 
 from vehicle_pose.geometry.window import Window
+
+from conftest import view
 
 
 def test_window_grows_the_box_within_the_image_and_never_enlarges():

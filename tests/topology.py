@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import httpx
+
 from service_stack import children, free_port
 
 SERVICE_ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +42,8 @@ class Topology:
         self.root = root
         self.n_workers = workers
         self.log = root / "topology.log"
-        self.keys = {"admin": "vp_admin_" + secrets.token_urlsafe(24), "default": "vp_client_" + secrets.token_urlsafe(24)}
+        self.keys = {"admin": "vp_admin_" + secrets.token_urlsafe(24),
+                     "default": "vp_client_" + secrets.token_urlsafe(24)}
         self.workers: list[subprocess.Popen[bytes]] = []
         self.api: subprocess.Popen[bytes] | None = None
         self.redis: subprocess.Popen[bytes] | None = None
@@ -61,7 +63,8 @@ class Topology:
             shutil.chown(self.pg_root, "postgres")
             self.as_user = ["runuser", "-u", "postgres", "--"]
         self.pg_port = free_port()
-        subprocess.run([*self.as_user, str(self.pg_bin / "initdb"), "-D", str(self.pg_root / "db"), "-A", "trust", "-U", "vp"],
+        subprocess.run([*self.as_user, str(self.pg_bin / "initdb"), "-D", str(self.pg_root / "db"), "-A", "trust",
+                        "-U", "vp"],
                        check=True, capture_output=True)
         self._pg("start")
 
@@ -154,7 +157,8 @@ class Topology:
         self.workers = [
             subprocess.Popen(
                 [sys.executable, "-m", "celery", "-A", "worker", "--quiet", "worker", "--loglevel", "INFO",
-                 "--pool", "prefork", "--concurrency", "1", "-Q", "registrations", "--hostname", f"w{i}-{time.time_ns()}@%h",
+                 "--pool", "prefork", "--concurrency", "1", "-Q", "registrations", "--hostname",
+                 f"w{i}-{time.time_ns()}@%h",
                  "--without-mingle", "--without-gossip"],
                 env=self.env, stdout=out, stderr=subprocess.STDOUT, cwd=self.root,
             )
@@ -162,7 +166,8 @@ class Topology:
         ]
         self.api_port = getattr(self, "api_port", None) or free_port()
         self.api = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host", "127.0.0.1", "--port", str(self.api_port),
+            [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host", "127.0.0.1", "--port",
+             str(self.api_port),
              "--log-level", "warning"],
             env=self.env, stdout=out, stderr=subprocess.STDOUT, cwd=self.root,
         )

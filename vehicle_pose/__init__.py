@@ -40,7 +40,6 @@ _WHERE = {
 }
 
 if TYPE_CHECKING:
-    from vehicle_pose.geometry.camera import Camera
     from vehicle_pose.errors import (
         CameraError,
         EmptyMeshError,
@@ -52,16 +51,17 @@ if TYPE_CHECKING:
         UnknownModelError,
         VehiclePoseError,
     )
-    from vehicle_pose.model.library import ModelLibrary, VehicleModel, model_from_mesh
+    from vehicle_pose.geometry.camera import Camera
+    from vehicle_pose.geometry.pose import Theta, camera_to_theta, theta_to_camera
     from vehicle_pose.loss.invariant import InvariantLoss, PhotoTarget, invariant_loss
+    from vehicle_pose.model.library import ModelLibrary, VehicleModel, model_from_mesh
     from vehicle_pose.model.loading import load_mesh
     from vehicle_pose.model.mesh import Mesh
-    from vehicle_pose.registration.options import RegistrationOptions
+    from vehicle_pose.model.store import ModelStore
     from vehicle_pose.photo import decode_photo, load_photo
+    from vehicle_pose.registration.options import RegistrationOptions
     from vehicle_pose.registration.register import register
     from vehicle_pose.registration.result import RegistrationResult
-    from vehicle_pose.geometry.pose import Theta, camera_to_theta, theta_to_camera
-    from vehicle_pose.model.store import ModelStore
 
 
 def __getattr__(name: str) -> Any:

@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from vehicle_pose import __version__
 from vehicle_pose.errors import RenderError, VehiclePoseError
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 __all__ = ["main"]
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, as for other bad input
+    def error(self, message: str) -> NoReturn:  # one line, exit 2, as for other bad input
         print(f"{self.prog}: error: {message}", file=sys.stderr)
         raise SystemExit(2)
 
@@ -69,9 +69,10 @@ def _parser() -> argparse.ArgumentParser:
     for a in (r, q):
         a.add_argument("--texture-dir", action="append", default=[], metavar="DIR",
                        help="for a mesh path: a further folder searched for its texture images (repeatable)")
-        a.add_argument("--cache-dir", help="where prepared models are kept "
-                       "(default $VEHICLE_POSE_CACHE_DIR, else $XDG_CACHE_HOME/vehicle-pose, else ~/.cache/vehicle-pose)")
-    r.add_argument("--no-cache", action="store_true", help="prepare the model in memory only, reading and writing no cache")
+        a.add_argument("--cache-dir", help="where prepared models are kept (default $VEHICLE_POSE_CACHE_DIR, "
+                       "else $XDG_CACHE_HOME/vehicle-pose, else ~/.cache/vehicle-pose)")
+    r.add_argument("--no-cache", action="store_true",
+                   help="prepare the model in memory only, reading and writing no cache")
     return p
 
 
@@ -116,8 +117,8 @@ def _load_models(args: argparse.Namespace, specs: list[str]) -> list[VehicleMode
     """Models named by mesh paths or library specs, each prepared completely on its first
     use (levels of detail and exterior passes, with a progress line) when a store is on."""
     from vehicle_pose.model.library import ModelLibrary, model_from_mesh
-    from vehicle_pose.render.renderer import Renderer
     from vehicle_pose.model.store import default_budgets
+    from vehicle_pose.render.renderer import Renderer
 
     store = _store(args)
     lib = ModelLibrary(args.models_dir, store=store)
@@ -162,9 +163,9 @@ def _prepare_command(args: argparse.Namespace) -> int:
 
 def _register(args: argparse.Namespace) -> int:
     from vehicle_pose.geometry.camera import Camera
+    from vehicle_pose.photo import load_photo
     from vehicle_pose.registration.identify import register_or_identify
     from vehicle_pose.render.overlay import draw_overlay, save_png
-    from vehicle_pose.photo import load_photo
 
     photo = load_photo(args.photo)
     models = _load_models(args, [args.model])

@@ -33,7 +33,8 @@ def _opened(data: bytes, max_pixels: int) -> Iterator[Image.Image]:
     except PhotoError:
         raise
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
-        raise PhotoTooLargeError(f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
+        raise PhotoTooLargeError(
+            f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
     except UnidentifiedImageError as exc:
         raise PhotoError(f"not a readable image: {exc}") from None
     except (OSError, ValueError, SyntaxError) as exc:
@@ -104,7 +105,8 @@ def resized(rgb: npt.NDArray[np.uint8], width: int, height: int) -> npt.NDArray[
         return rgb
     import cv2
 
-    return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+    out: npt.NDArray[np.uint8] = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+    return out
 
 
 def resized_mask(mask: npt.NDArray[np.bool_], width: int, height: int) -> npt.NDArray[np.bool_]:

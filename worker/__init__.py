@@ -11,8 +11,8 @@ from typing import Any
 
 def __getattr__(name: str) -> Any:
     if name == "app":
-        from core.queue import get_celery
         import worker.tasks  # noqa: F401  (the tasks are shared tasks: they bind to the app)
+        from core.queue import get_celery
 
         return get_celery()
     raise AttributeError(f"module 'worker' has no attribute {name!r}")

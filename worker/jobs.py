@@ -21,8 +21,8 @@ from sqlalchemy.exc import OperationalError
 from core.config import Settings, get_settings
 from core.db import session_scope
 from core.library import get_library
-from core.storage import ObjectMissing, Storage, StorageUnavailable, get_storage
 from core.models import JobStatus, Registration, utcnow
+from core.storage import ObjectMissing, Storage, StorageUnavailable, get_storage
 from vehicle_pose import (
     Camera,
     ModelLibrary,

@@ -13,7 +13,6 @@ from celery.signals import worker_init, worker_process_init
 
 from core.config import get_settings
 from core.db import get_engine
-
 from core.queue import PREPARE_TASK, TASK
 from worker.jobs import Retry, fail_job, requeue, run_job
 

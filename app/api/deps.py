@@ -9,11 +9,11 @@ from typing import Annotated
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 
+from app.problems import Problem
 from core.config import Settings, get_settings
 from core.db import get_session
-from app.problems import Problem
-from core.security import client_for_key
 from core.models import Client
+from core.security import client_for_key
 
 SessionDep = Annotated[Session, Depends(get_session)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]

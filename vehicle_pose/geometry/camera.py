@@ -61,7 +61,8 @@ class Camera:
             raise CameraError("camera holds non-finite numbers")
         if k[0][0] <= 0 or k[1][1] <= 0 or abs(k[2][2] - 1.0) > 1e-9 or k[2][0] != 0 or k[2][1] != 0:
             raise CameraError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-        gram = max(abs(sum(a * b for a, b in zip(r[i], r[j])) - (i == j)) for i in range(3) for j in range(i, 3))
+        gram = max(abs(sum(a * b for a, b in zip(r[i], r[j], strict=True)) - (i == j))
+                   for i in range(3) for j in range(i, 3))
         det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
                + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
         if gram > 1e-6 or det < 0:

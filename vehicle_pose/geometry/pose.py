@@ -15,8 +15,8 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import PoseError
+from vehicle_pose.geometry.camera import Camera
 
 __all__ = [
     "Side",

@@ -69,12 +69,15 @@ class Window:
         crop = rgb[self.y0 : self.y1, self.x0 : self.x1]
         if crop.shape[1] == self.width and crop.shape[0] == self.height:
             return crop
-        return cv2.resize(np.ascontiguousarray(crop), (self.width, self.height), interpolation=cv2.INTER_AREA)
+        out: npt.NDArray[np.uint8] = cv2.resize(np.ascontiguousarray(crop), (self.width, self.height),
+                                                interpolation=cv2.INTER_AREA)
+        return out
 
     def mask(self, mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
         """The window of a full-size mask, reduced."""
         crop = mask[self.y0 : self.y1, self.x0 : self.x1].astype(np.uint8)
-        return cv2.resize(crop, (self.width, self.height), interpolation=cv2.INTER_NEAREST) > 0
+        out: npt.NDArray[np.bool_] = cv2.resize(crop, (self.width, self.height), interpolation=cv2.INTER_NEAREST) > 0
+        return out
 
     def full_mask(self, mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
         """A window mask at the full image's size (False outside the window)."""

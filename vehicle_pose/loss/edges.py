@@ -21,6 +21,7 @@ one compiled pass over the read-back window (numba), like the loss's moments.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -85,7 +86,8 @@ def photo_edges(rgb: npt.NDArray[np.uint8], *, low: float = 40.0, high: float = 
 
 
 @njit(cache=True, nogil=True)
-def _edge_cost(labels, attrs, distance, x0, y0, tau, albedo_step, crease):  # pragma: no cover - compiled
+def _edge_cost(labels: npt.NDArray[Any], attrs: npt.NDArray[Any], distance: npt.NDArray[Any], x0: int, y0: int,
+               tau: float, albedo_step: float, crease: float) -> tuple[float, int]:  # pragma: no cover - compiled
     h, w = labels.shape
     bins, height, width = distance.shape
     # Channels with a one-pixel border: coverage, albedo and the normal's x and y. Beyond the
@@ -180,7 +182,8 @@ class EdgeLoss:
         within = None
         if foreground is not None and not foreground.all():
             r = max(1, round(reach * float(np.hypot(h, w))))
-            within = cv2.dilate(foreground.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
+            within = cv2.dilate(foreground.astype(np.uint8),
+                                cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
         self.edges = photo_edges(rgb, within=within)
         self.tau = max(2.0, tau * float(np.hypot(h, w)))
         self.albedo_step = albedo_step

@@ -96,7 +96,8 @@ def _inv_sqrt(cov: FloatArray) -> FloatArray:
     if not np.isfinite(top) or top <= 0.0:
         return np.zeros((cov.shape[0], 0))
     keep = evals > _RTOL * top
-    return evecs[:, keep] / np.sqrt(evals[keep])
+    whitening: npt.NDArray[np.float64] = evecs[:, keep] / np.sqrt(evals[keep])
+    return whitening
 
 
 def _photo_whitening(sw: float, s_f: FloatArray, s_ff: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -14,7 +14,7 @@ Compiled on first use and cached beside this file (``NUMBA_CACHE_DIR`` moves the
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -23,18 +23,19 @@ from numba import njit
 __all__ = ["PartMoments", "part_moments", "frame_loss", "warm_up"]
 
 FloatArray = npt.NDArray[np.float64]
+Array = npt.NDArray[Any]
 
 
 class PartMoments(NamedTuple):
     """Weighted sums per material label (rows: labels 1..k) and over all covered pixels.
 
-    ``count`` (k,) the summed weight, ``f`` (k, n) the summed weighted photo attributes, ``a``
+    ``weight`` (k,) the summed weight, ``f`` (k, n) the summed weighted photo attributes, ``a``
     (k, 4) the summed weighted model attributes, ``fa`` (n, 4) sum of weighted F times M, and
     ``aa`` (4, 4) sum of weighted M M^T; ``pixels`` the number of covered pixels.
     """
 
     pixels: int
-    count: FloatArray
+    weight: FloatArray
     f: FloatArray
     a: FloatArray
     fa: FloatArray
@@ -42,7 +43,8 @@ class PartMoments(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def _part_moments(labels, attrs, fw, w, unit, x0, y0, width, k):  # pragma: no cover - compiled
+def _part_moments(labels: Array, attrs: Array, fw: Array, w: Array, unit: bool, x0: int, y0: int, width: int,
+                  k: int) -> tuple[int, Array, Array, Array, Array, Array]:  # pragma: no cover - compiled
     h, wd = labels.shape
     n = fw.shape[1]
     cnt = np.zeros(k + 1)
@@ -83,7 +85,8 @@ def _part_moments(labels, attrs, fw, w, unit, x0, y0, width, k):  # pragma: no c
 
 
 @njit(cache=True, nogil=True)
-def _loss_of_parts(sw, mean_f, w_f, count, f, a, fa, aa, rtol):  # pragma: no cover - compiled
+def _loss_of_parts(sw: float, mean_f: Array, w_f: Array, count: Array, f: Array, a: Array, fa: Array, aa: Array,
+                   rtol: float) -> float:  # pragma: no cover - compiled
     """The loss of M = (one indicator per material, k_a, k_d * normal) from per-material sums."""
     k, n = count.shape[0], mean_f.shape[0]
     m = k + 4
@@ -135,7 +138,9 @@ def _loss_of_parts(sw, mean_f, w_f, count, f, a, fa, aa, rtol):  # pragma: no co
 
 
 @njit(cache=True, nogil=True)
-def _frame_loss(labels, attrs, fw, w, unit, x0, y0, width, k, merge, min_pixels, sw, mean_f, w_f, rtol):  # pragma: no cover - compiled
+def _frame_loss(labels: Array, attrs: Array, fw: Array, w: Array, unit: bool, x0: int, y0: int, width: int, k: int,
+                merge: bool, min_pixels: int, sw: float, mean_f: Array, w_f: Array,
+                rtol: float) -> float:  # pragma: no cover - compiled
     pixels, cnt, sf, sa, sfa, saa = _part_moments(labels, attrs, fw, w, unit, x0, y0, width, k)
     if merge:
         one = np.empty(1)
@@ -175,7 +180,8 @@ def frame_loss(
     The model attributes are one indicator per material kind and (k_a, k_d * normal); with
     ``merge`` the materials are taken as one (the coverage indicator). Arguments as for
     :func:`part_moments`, plus the photo's total weight ``sw``, mean ``mean_f`` and whitening
-    ``w_f`` (``W_F^T C_FF W_F = I`` over the range of C_FF, (n, r)) and the relative eigenvalue ``rtol`` under which a model
+    ``w_f`` (``W_F^T C_FF W_F = I`` over the range of C_FF, (n, r)) and the relative eigenvalue
+    ``rtol`` under which a model
     covariance direction counts as empty. Fewer than ``min_pixels`` covered pixels score the
     maximum, ``min(n, m)``.
     """
@@ -215,7 +221,8 @@ def part_moments(
     ValueError
         A label is above ``kinds``.
     """
-    return PartMoments(*_part_moments(labels, attrs, fw, w, bool(unit_weights), int(x0), int(y0), int(width), int(kinds)))
+    return PartMoments(*_part_moments(labels, attrs, fw, w, bool(unit_weights), int(x0), int(y0), int(width),
+                                      int(kinds)))
 
 
 def warm_up() -> None:

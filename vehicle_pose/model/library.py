@@ -23,8 +23,8 @@ from vehicle_pose.model.metadata import UNITS, ModelInfo, WheelGeometry, estimat
 
 if TYPE_CHECKING:
     from vehicle_pose.model.mesh import Mesh
-    from vehicle_pose.render.renderer import Renderer
     from vehicle_pose.model.store import Levels, ModelStore
+    from vehicle_pose.render.renderer import Renderer
 
 __all__ = ["AUTO", "VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
 
@@ -76,7 +76,8 @@ class VehicleModel:
         return mesh
 
     def exterior(self, max_faces: int, renderer: Renderer) -> Mesh:
-        """The exterior pass (:func:`~vehicle_pose.render.exterior.exterior_faces`) of :meth:`lod`, computed once per model and GL driver."""
+        """The exterior pass (:func:`~vehicle_pose.render.exterior.exterior_faces`) of :meth:`lod`,
+        computed once per model and GL driver."""
         assert self.levels is not None
         return self.levels.exterior(max_faces, self.lod(max_faces), renderer)
 

@@ -152,7 +152,7 @@ def oriented_faces(faces: npt.NDArray[np.integer]) -> npt.NDArray[np.int64]:
     inner = p < F
     inc[nodes[inner]] = flags[np.searchsorted(pair, p[inner] * F + nodes[inner])]
     flip = _propagate(nodes, pred.astype(np.int64), inc, F)
-    out = faces.copy()
+    out = faces.astype(np.int64)
     out[flip] = out[flip][:, ::-1]
     return out
 
@@ -229,7 +229,9 @@ def load_mesh(path: str | Path, *, texture_dirs: Sequence[str | Path] = ()) -> M
     return load_mesh_recording(path, texture_dirs=texture_dirs)[0]
 
 
-def load_mesh_recording(path: str | Path, *, texture_dirs: Sequence[str | Path] = ()) -> tuple[Mesh, list[Path], list[str]]:
+def load_mesh_recording(
+    path: str | Path, *, texture_dirs: Sequence[str | Path] = ()
+) -> tuple[Mesh, list[Path], list[str]]:
     """:func:`load_mesh`, also returning the files the mesh file led to reading (material
     libraries, textures, buffers) and the names it referred to that were not found."""
     import trimesh

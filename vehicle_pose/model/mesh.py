@@ -153,7 +153,7 @@ class Mesh:
 
         budgets = _share_faces([len(p.faces) for p in self.parts], max_faces)
         parts = []
-        for p, budget in zip(self.parts, budgets):
+        for p, budget in zip(self.parts, budgets, strict=True):
             albedo = _mean_albedo(p)
             if budget >= len(p.faces) or len(p.faces) < 64:
                 parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
@@ -175,7 +175,8 @@ class Mesh:
     def _merged(self, part: Part) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
         """The part's vertices and faces with coincident vertices merged, kept for the next
         level's decimation (0.6 s a level for a 2M-face mesh)."""
-        cache: dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]] = self.__dict__.setdefault("_merged_cache", {})
+        cache: dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]]
+        cache = self.__dict__.setdefault("_merged_cache", {})
         found = cache.get(id(part))
         if found is None:
             import trimesh
@@ -184,7 +185,8 @@ class Mesh:
             found = cache[id(part)] = (np.asarray(merged.vertices, np.float64), np.asarray(merged.faces, np.int64))
         return found
 
-    def outlines(self, size: int = 256, frame: tuple[npt.NDArray[np.float64], float] | None = None) -> npt.NDArray[np.bool_]:
+    def outlines(self, size: int = 256,
+                 frame: tuple[npt.NDArray[np.float64], float] | None = None) -> npt.NDArray[np.bool_]:
         """Orthographic silhouettes (14, size, size) along the 6 axes and 8 diagonals.
 
         Drawn on the CPU (no OpenGL) within ``frame`` = (centre, radius), the mesh's enclosing
@@ -197,7 +199,7 @@ class Mesh:
         dirs += [np.array(d) / np.sqrt(3.0) for d in itertools.product((1.0, -1.0), repeat=3)]
         verts = self.vertices - centre
         offsets = np.cumsum([0] + [len(p.vertices) for p in self.parts])
-        faces = np.concatenate([p.faces.astype(np.int64) + o for p, o in zip(self.parts, offsets)])
+        faces = np.concatenate([p.faces.astype(np.int64) + o for p, o in zip(self.parts, offsets[:-1], strict=True)])
         out = np.zeros((len(dirs), size, size), np.uint8)
         shift = 4
         scale = (size / 2.0) / radius * (1 << shift)

@@ -174,7 +174,8 @@ def estimate_wheels(vertices: npt.ArrayLike, up: FloatArray, forward: FloatArray
     height = ground + wheel_r
 
     def point(xc: float) -> FloatArray:
-        return xc * fwd + y_mid * left + height * up
+        p: FloatArray = xc * fwd + y_mid * left + height * up
+        return p
 
     return WheelGeometry(point(rear_x), point(front_x), left, 2.0 * half_track, wheel_r)
 
@@ -230,7 +231,8 @@ class ModelInfo:
                 raise ModelError(f"model metadata lacks {key!r}")
         w = data.get("wheels") or {}
         wheels = WheelGeometry.from_dict(w) if all(k in w for k in _WHEEL_KEYS) else None
-        known = {"id", "name", "mesh", "units", "meters_per_unit", "up", "forward", "wheels", "estimated", "texture_dirs"}
+        known = {"id", "name", "mesh", "units", "meters_per_unit", "up", "forward", "wheels", "estimated",
+                 "texture_dirs"}
         return cls(
             id=str(data["id"]),
             name=str(data.get("name", data["id"])),

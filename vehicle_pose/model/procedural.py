@@ -78,7 +78,8 @@ HATCHBACK = CarSpec(
     clearance=0.16,
     belt=0.95,
     roof_inset=0.2,
-    top=((2.02, 0.6), (1.92, 0.84), (0.85, 0.97), (0.05, 1.46), (-1.6, 1.43), (-1.96, 1.18), (-2.02, 0.92), (-2.02, 0.62)),
+    top=((2.02, 0.6), (1.92, 0.84), (0.85, 0.97), (0.05, 1.46), (-1.6, 1.43), (-1.96, 1.18), (-2.02, 0.92),
+         (-2.02, 0.62)),
     glass_x=(-1.9, 0.78),
     body_albedo=0.55,
 )
@@ -95,7 +96,8 @@ SUV = CarSpec(
     clearance=0.26,
     belt=1.14,
     roof_inset=0.15,
-    top=((2.37, 0.78), (2.27, 1.04), (1.2, 1.17), (0.45, 1.74), (-2.05, 1.76), (-2.33, 1.55), (-2.37, 1.05), (-2.37, 0.8)),
+    top=((2.37, 0.78), (2.27, 1.04), (1.2, 1.17), (0.45, 1.74), (-2.05, 1.76), (-2.33, 1.55), (-2.37, 1.05),
+         (-2.37, 0.8)),
     glass_x=(-2.2, 1.1),
     body_albedo=0.4,
 )
@@ -129,7 +131,8 @@ PICKUP = CarSpec(
     clearance=0.28,
     belt=1.2,
     roof_inset=0.12,
-    top=((2.67, 0.82), (2.57, 1.14), (1.5, 1.24), (0.75, 1.86), (-0.55, 1.87), (-0.68, 1.28), (-2.62, 1.27), (-2.67, 0.86)),
+    top=((2.67, 0.82), (2.57, 1.14), (1.5, 1.24), (0.75, 1.86), (-0.55, 1.87), (-0.68, 1.28), (-2.62, 1.27),
+         (-2.67, 0.86)),
     glass_x=(-0.66, 1.32),
     body_albedo=0.3,
 )
@@ -162,7 +165,7 @@ def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
     cz = np.sign(np.sin(ang)) * np.abs(np.sin(ang)) ** 0.5
     verts = []
     hw = spec.width / 2
-    for x, z0, z1 in zip(xs, bottom, top):
+    for x, z0, z1 in zip(xs, bottom, top, strict=True):
         zc, hz = 0.5 * (z0 + z1), 0.5 * (z1 - z0)
         z = zc + hz * cz
         taper = np.clip((z - spec.belt) / max(z1 - spec.belt, 1e-6), 0.0, 1.0)
@@ -184,20 +187,20 @@ def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
         faces.append((front_c, (j + 1) % r, j))
         last = (n - 1) * r
         faces.append((rear_c, last + j, last + (j + 1) % r))
-    faces = np.array(faces)
-    cent = v[faces].mean(1)
+    tris = np.array(faces)
+    cent = v[tris].mean(1)
     seg = np.array([np.sin(ang[j]) for j in range(r)])
-    ring_j = np.where(faces[:, 0] < n * r, faces[:, 0] % r, 0)
+    ring_j = np.where(tris[:, 0] < n * r, tris[:, 0] % r, 0)
     roofish = seg[ring_j] > 0.93
     glass = (
         (cent[:, 0] > spec.glass_x[0])
         & (cent[:, 0] < spec.glass_x[1])
         & (cent[:, 2] > spec.belt + 0.04)
         & ~roofish
-        & (faces[:, 0] < n * r)
+        & (tris[:, 0] < n * r)
     )
-    body = trimesh.Trimesh(v, faces[~glass], process=True)
-    glass_mesh = trimesh.Trimesh(v, faces[glass], process=True)
+    body = trimesh.Trimesh(v, tris[~glass], process=True)
+    glass_mesh = trimesh.Trimesh(v, tris[glass], process=True)
     body.remove_unreferenced_vertices()
     glass_mesh.remove_unreferenced_vertices()
     return body, glass_mesh

@@ -362,7 +362,7 @@ class Levels:
 
         gl = renderer.ctx.info.get("GL_RENDERER", "?")
         level = "full" if max_faces >= self.mesh.n_faces else str(max_faces)
-        args = tuple(exterior_faces.__kwdefaults__.values())  # the pass's own settings
+        args = tuple((exterior_faces.__kwdefaults__ or {}).values())  # the pass's own settings
         return f"{level}|{gl}|{args}"
 
     def exterior(self, max_faces: int, mesh: Mesh, renderer: Renderer) -> Mesh:

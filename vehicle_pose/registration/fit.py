@@ -226,12 +226,14 @@ def fit(
                                    plan.evaluations - budgets.focal_evaluations))
         res, params = min(runs, key=lambda e: e[0].fun)
         if len(runs) > 1:
-            res = replace(res, evaluations=sum(r.evaluations for r, _ in runs), restarts=sum(r.restarts for r, _ in runs))
+            res = replace(res, evaluations=sum(r.evaluations for r, _ in runs),
+                          restarts=sum(r.restarts for r, _ in runs))
         camera = params.camera(res.x).scaled(Wf, Hf)
         loss = res.fun
         if edge_fn is not None or level_box is not None:
             loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
-        levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t, res.fun))
+        levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t,
+                                  res.fun))
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
         if segment_again and li < len(sizes) - 1:

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import PoseError
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.register import register

@@ -250,7 +250,7 @@ class Search(_Group):
                                    low=0.0)
 
 
-_GROUPS: dict[str, type[_Group]] = {
+_GROUPS: dict[str, type[Any]] = {
     "pyramid": Pyramid, "segmentation": Segmentation, "terms": Terms, "budgets": Budgets, "probes": Probes,
     "search": Search,
 }
@@ -284,7 +284,7 @@ class RegistrationOptions(_Group):
     probes: Probes = field(default_factory=Probes)
     search: Search = field(default_factory=Search)
 
-    GROUPS: ClassVar[Mapping[str, type[_Group]]] = _GROUPS
+    GROUPS: ClassVar[Mapping[str, type[Any]]] = _GROUPS
 
     @classmethod
     def specs(cls) -> Iterator[tuple[str, dataclasses.Field[Any], OptionSpec]]:

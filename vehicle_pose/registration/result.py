@@ -39,7 +39,8 @@ class RegistrationResult:
     ``foreground`` is the GrabCut mask at the photo's size. ``start_source`` is the hint the
     client gave (``init_camera``, ``bbox`` or ``none``), ``start_method`` how the winning start
     was found (``given``, ``view-search`` or ``wheels``). ``confidence`` (in [0, 1], see
-    :func:`~vehicle_pose.registration.credibility.confidence`) and ``failed`` judge a pose found without a start camera; ``checks``
+    :func:`~vehicle_pose.registration.credibility.confidence`) and ``failed`` judge a pose found
+    without a start camera; ``checks``
     holds the measures behind them (and, for every run, ``foreground_iou``, the final
     silhouette against the final GrabCut mask, and ``loss``, the final loss over its maximum;
     ``passes`` is 2 when a second search ran);

@@ -32,7 +32,8 @@ def box_mask(box: Box, width: int, height: int, margin: float) -> npt.NDArray[np
     x0, y0, x1, y1 = box
     g = margin * float(np.hypot(x1 - x0, y1 - y0))
     mask = np.zeros((height, width), bool)
-    mask[max(0, int(y0 - g)) : max(0, int(np.ceil(y1 + g)) + 1), max(0, int(x0 - g)) : max(0, int(np.ceil(x1 + g)) + 1)] = True
+    mask[max(0, int(y0 - g)) : max(0, int(np.ceil(y1 + g)) + 1),
+         max(0, int(x0 - g)) : max(0, int(np.ceil(x1 + g)) + 1)] = True
     return mask
 
 

@@ -18,7 +18,7 @@ import numpy.typing as npt
 
 from vehicle_pose.errors import RenderError
 from vehicle_pose.model.mesh import Mesh
-from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.render.renderer import Renderer, uniform
 
 __all__ = ["exterior_faces", "sphere_directions"]
 
@@ -140,10 +140,10 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
         fbo.use()
         fbo.viewport = (0, 0, size, size)
         for mvp in _view_matrices(mesh, sphere_directions(directions), distance):
-            program["mvp"].write(mvp.T.astype("f4").tobytes())
+            uniform(program, "mvp").write(mvp.T.astype("f4").tobytes())
             fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
             for vao, first in draws:
-                program["base"].value = first
+                uniform(program, "base").value = first
                 vao.render(moderngl.TRIANGLES)
             ids = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32).astype(np.int64)
             front += np.bincount(ids[ids > 0], minlength=base + 1)
@@ -162,10 +162,10 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
     # there, under 0.5 % of its pixels on the test shapes and the shipped models. A side is
     # taken as seen from outside when it won at least 1 % of the face's pixels, or 32.
     least = np.minimum(_SEEN_FRACTION * (front + back), _SEEN_PIXELS)
-    front, back = seen & (front >= least), seen & (back >= least)
+    front_seen, back_seen = seen & (front >= least), seen & (back >= least)
     parts, first = [], 0
     for part in mesh.parts:
-        f, b = front[first : first + len(part.faces)], back[first : first + len(part.faces)]
+        f, b = front_seen[first : first + len(part.faces)], back_seen[first : first + len(part.faces)]
         first += len(part.faces)
         one = f != b
         oriented = np.where((b & ~f)[:, None], part.faces[:, [0, 2, 1]], part.faces)[one]
@@ -174,7 +174,8 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
             parts.append(replace(part, faces=np.ascontiguousarray(oriented), one_sided=True))
         if two.any():
             parts.append(part if two.all() else replace(part, faces=part.faces[two], one_sided=False))
-    unchanged = not parts or (len(parts) == len(mesh.parts) and all(a is b for a, b in zip(parts, mesh.parts)))
+    same = len(parts) == len(mesh.parts) and all(a is b for a, b in zip(parts, mesh.parts, strict=True))
+    unchanged = not parts or same
     out = mesh if unchanged else Mesh(tuple(parts), source=f"{mesh.source} (exterior)")
     with _EXTERIOR_LOCK:
         _EXTERIOR.setdefault(mesh, {})[key] = out

@@ -38,7 +38,7 @@ def get_context(backend: str = "egl") -> moderngl.Context:
         if ctx is not None and _state.get("pid") == os.getpid():
             return ctx  # type: ignore[return-value]
         try:
-            ctx = moderngl.create_context(standalone=True, backend=backend, require=330)
+            ctx = moderngl.create_context(standalone=True, backend=backend, require=330)  # type: ignore[arg-type]
         except Exception as exc:  # glcontext raises plain Exceptions for driver failures
             raise RenderError(f"cannot create a headless OpenGL context ({backend}): {exc}") from None
         _state.update(ctx=ctx, pid=os.getpid())

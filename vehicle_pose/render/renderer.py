@@ -17,18 +17,19 @@ import math
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import moderngl
 import numpy as np
 import numpy.typing as npt
 
-from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import RenderError
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.model.mesh import KINDS, Mesh
 from vehicle_pose.render.buffers import GpuMesh
 from vehicle_pose.render.gl import get_context
-from vehicle_pose.model.mesh import KINDS, Mesh
 
-__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight"]
+__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight", "uniform"]
 
 _VERTEX_SHADER = """
 #version 330
@@ -89,9 +90,18 @@ void main() {
 """
 
 
+def uniform(program: moderngl.Program, name: str) -> moderngl.Uniform:
+    """The uniform ``name`` of ``program`` (moderngl's lookup also returns attributes and blocks)."""
+    member = program[name]
+    if not isinstance(member, moderngl.Uniform):
+        raise RenderError(f"the shader has no uniform {name!r}")
+    return member
+
+
 def headlight(attrs: npt.NDArray[np.floating]) -> npt.NDArray[np.floating]:
     """Gray shading ``0.3 k_a + 0.7 k_d |n_z|`` of rendered attributes (..., 4): a light at the camera."""
-    return 0.3 * attrs[..., 0] + 0.7 * np.abs(attrs[..., 3])
+    shade: npt.NDArray[np.floating] = 0.3 * attrs[..., 0] + 0.7 * np.abs(attrs[..., 3])
+    return shade
 
 
 def clip_planes(mesh: Mesh, camera: Camera) -> tuple[float, float] | None:
@@ -160,7 +170,7 @@ class Frame:
         """Number of covered pixels."""
         return int(self._window_indices.size)
 
-    def covered(self, arr: npt.NDArray) -> npt.NDArray:
+    def covered(self, arr: npt.NDArray[Any]) -> npt.NDArray[Any]:
         """Values of a window-shaped array (h, w, ...) at the covered pixels, shape (N, ...)."""
         h, w = self.labels.shape
         return np.take(arr.reshape((h * w,) + arr.shape[2:]), self._window_indices, axis=0)
@@ -168,9 +178,10 @@ class Frame:
     def covered_flat_indices(self) -> npt.NDArray[np.intp]:
         """Row-major indices (N,) of the covered pixels in the whole image."""
         r, c = np.divmod(self._window_indices, self.labels.shape[1])
-        return (r + self.y0) * self.width + (c + self.x0)
+        flat: npt.NDArray[np.intp] = (r + self.y0) * self.width + (c + self.x0)
+        return flat
 
-    def full(self, arr: npt.NDArray, fill: float = 0) -> npt.NDArray:
+    def full(self, arr: npt.NDArray[Any], fill: float = 0) -> npt.NDArray[Any]:
         """A window-shaped array pasted into a whole-image array (H, W, ...)."""
         out = np.full((self.height, self.width) + arr.shape[2:], fill, dtype=arr.dtype)
         h, w = arr.shape[:2]
@@ -197,7 +208,7 @@ class Renderer:
     def __init__(self, ctx: moderngl.Context | None = None, *, cache_size: int = 8) -> None:
         self.ctx = ctx if ctx is not None else get_context()
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
-        self.program["tex"].value = 0
+        uniform(self.program, "tex").value = 0
         self._meshes: OrderedDict[int, GpuMesh] = OrderedDict()
         self._fbos: OrderedDict[tuple[int, int, str], moderngl.Framebuffer] = OrderedDict()
         self._cache_size = cache_size
@@ -280,8 +291,8 @@ class Renderer:
         mv[:3, 3] = camera.t
         mvp = projection_matrix(camera, near, far) @ mv
         # GLSL matrices are column-major.
-        self.program["mvp"].write(mvp.T.astype("f4").tobytes())
-        self.program["mv"].write(mv.T.astype("f4").tobytes())
+        uniform(self.program, "mvp").write(mvp.T.astype("f4").tobytes())
+        uniform(self.program, "mv").write(mv.T.astype("f4").tobytes())
         fbo = self.framebuffer(camera.width, camera.height)
         fbo.use()
         fbo.viewport = (0, 0, camera.width, camera.height)
@@ -289,9 +300,9 @@ class Renderer:
         self.ctx.scissor = (x0, y0, w, h)
         # Only labels and depth are cleared: the attributes count only where a label is set,
         # and clearing their 16 bytes a pixel cost llvmpipe 10-15 % of a 640x480 frame.
-        fbo.color_mask = ((False, False, False, False), (True, True, True, True))
+        fbo.color_mask = ((False, False, False, False), (True, True, True, True))  # type: ignore[assignment]
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        fbo.color_mask = ((True, True, True, True), (True, True, True, True))
+        fbo.color_mask = ((True, True, True, True), (True, True, True, True))  # type: ignore[assignment]
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.BLEND)
         self.ctx.front_face = "ccw"

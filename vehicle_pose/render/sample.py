@@ -31,7 +31,8 @@ def write_sample(folder: str | Path, model_id: str = "sedan") -> list[Path]:
     )
     rgb, _ = synthesize(model.mesh, truth, lighting=LIGHTINGS["side"], seed=7)
     tilt = Rotation.from_rotvec(np.radians([3.0, -6.0, 2.0])).as_matrix()
-    start = Camera(truth.K * np.array([[0.9, 1, 1], [1, 0.9, 1], [1, 1, 1]]), tilt @ truth.R, truth.t * [1.02, 0.97, 1.04], 800, 600)
+    start = Camera(truth.K * np.array([[0.9, 1, 1], [1, 0.9, 1], [1, 1, 1]]), tilt @ truth.R,
+                   truth.t * [1.02, 0.97, 1.04], 800, 600)
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"{model_id}.jpg", out / f"{model_id}_init.json", out / f"{model_id}_truth.json"]

@@ -46,7 +46,8 @@ def _smooth_texture(height: int, width: int, rng: np.random.Generator, cells: in
                     channels: int = 1) -> npt.NDArray[np.float64]:
     """Random values on a grid ``cells`` wide, cubically interpolated to (height, width[, channels])."""
     shape = (cells * height // width + 1, cells) + ((channels,) if channels > 1 else ())
-    return cv2.resize(rng.random(shape), (width, height), interpolation=cv2.INTER_CUBIC)
+    out: npt.NDArray[np.float64] = cv2.resize(rng.random(shape), (width, height), interpolation=cv2.INTER_CUBIC)
+    return out
 
 
 def _background(height: int, width: int, rng: np.random.Generator) -> npt.NDArray[np.float64]:
@@ -137,7 +138,8 @@ def synthesize_hazard(
     elif hazard == "sky-on-glass":
         frame = r.render(mesh, camera)
         glass = frame.full(frame.labels == KINDS.index("glass") + 1)
-        sky = np.linspace(0.75, 0.98, camera.height)[:, None] + 0.25 * (_smooth_texture(camera.height, camera.width, rng, 8) - 0.5)
+        gradient = np.linspace(0.75, 0.98, camera.height)[:, None]
+        sky = gradient + 0.25 * (_smooth_texture(camera.height, camera.width, rng, 8) - 0.5)
         tint = np.array([0.85, 0.92, 1.0])
         img[glass] = np.clip(sky[glass][:, None] * tint, 0.0, 1.0)
     elif hazard == "second-car":

@@ -10,7 +10,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -19,7 +19,7 @@ from scipy.optimize import minimize
 from vehicle_pose.registry import OPTIMIZERS
 
 
-def _cma():  # type: ignore[no-untyped-def]
+def _cma() -> Any:
     """The ``cma`` package, imported on first use (0.5 s: it loads scipy.stats), so that a
     registration that never runs CMA-ES does not pay for it."""
     with warnings.catch_warnings():
@@ -148,7 +148,8 @@ class NelderMeadRestarts:
 
             def stall(intermediate_result: object) -> None:
                 history.append(counted.best_f)
-                if len(history) > max(self.patience, 2 * (dim + 1)) and history[-1 - self.patience] - history[-1] < self.ftol:
+                settled = len(history) > max(self.patience, 2 * (dim + 1))
+                if settled and history[-1 - self.patience] - history[-1] < self.ftol:
                     raise StopIteration
 
             left = max_evaluations - counted.count

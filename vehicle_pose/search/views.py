@@ -16,17 +16,17 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from vehicle_pose.geometry.camera import Camera, look_at_camera
-from vehicle_pose.metrics import rotation_error
-from vehicle_pose.registration.options import WINDOW_MARGIN
 from vehicle_pose.errors import CameraError
-from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.loss.invariant import InvariantLoss, make_target
-from vehicle_pose.loss.alternatives import SilhouetteIoULoss
-from vehicle_pose.model.metadata import parse_axis
-from vehicle_pose.segment.region import VehicleRegion
-from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.geometry.window import Window
+from vehicle_pose.loss.alternatives import SilhouetteIoULoss
+from vehicle_pose.loss.invariant import InvariantLoss, make_target
+from vehicle_pose.metrics import rotation_error
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.model.metadata import parse_axis
+from vehicle_pose.registration.options import WINDOW_MARGIN
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.segment.region import VehicleRegion
 
 __all__ = [
     "Box",

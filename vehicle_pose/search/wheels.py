@@ -18,14 +18,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.errors import PoseError
-from vehicle_pose.search.views import Candidate
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.geometry.pose import Theta, theta_to_camera
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.model.metadata import parse_axis
-from vehicle_pose.geometry.pose import Theta, theta_to_camera
-from vehicle_pose.segment.region import VehicleRegion
+from vehicle_pose.search.views import Candidate
 from vehicle_pose.segment.grabcut import disk
+from vehicle_pose.segment.region import VehicleRegion
 
 __all__ = ["Ellipse", "detect_wheels", "wheel_candidates"]
 
@@ -190,13 +190,14 @@ def wheel_candidates(
         for (tilt, direction), sign in itertools.product(axes, (1.0, -1.0)):
             psi = np.array([*(sign * np.sin(tilt) * direction), -np.cos(tilt)])
             for side in ("left", "right"):
-                theta = Theta(np.array(e1.centre), d, psi, focal_widths * width, side)  # type: ignore[arg-type]
+                theta = Theta(np.array(e1.centre), d, psi, focal_widths * width, side)
                 try:
-                    cam: Camera = theta_to_camera(theta, wheels.side(side), width, height)  # type: ignore[arg-type]
+                    cam: Camera = theta_to_camera(theta, wheels.side(side), width, height)
                 except PoseError:
                     continue
                 if float((cam.R @ up)[1]) > -0.5:
                     continue
-                out.append(Candidate(cam, "wheels", detail={"rear": i, "front": j, "tilt": float(sign * np.degrees(tilt)),
+                out.append(Candidate(cam, "wheels",
+                                     detail={"rear": i, "front": j, "tilt": float(sign * np.degrees(tilt)),
                                                             "left_side": float(side == "left")}))
     return out

@@ -17,7 +17,8 @@ __all__ = ["grabcut_foreground", "disk"]
 
 def disk(radius: int) -> npt.NDArray[np.uint8]:
     """A disk-shaped structuring element of the given radius (pixels) for OpenCV morphology."""
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    kernel: npt.NDArray[np.uint8] = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    return kernel
 
 
 def grabcut_foreground(

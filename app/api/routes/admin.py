@@ -12,11 +12,11 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy import func, select
 
-from core.library import get_library
-from app.problems import Problem
-from core.models import Client, JobStatus, Registration
-from app.registrations import stored_response, visible_job
 from app.api.deps import AdminClient, SessionDep
+from app.problems import Problem
+from app.registrations import stored_response, visible_job
+from core.library import get_library
+from core.models import Client, JobStatus, Registration
 
 router = APIRouter(prefix="/admin", tags=["admin"], include_in_schema=False)
 templates = Jinja2Templates(directory=Path(__file__).resolve().parents[2] / "templates")

@@ -11,12 +11,11 @@ from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from sqlalchemy import text
 
-from core.queue import get_celery
-
-from core.config import get_settings
-from core.db import session_scope
 from app.metrics import registry
 from app.problems import MEDIA_TYPE
+from core.config import get_settings
+from core.db import session_scope
+from core.queue import get_celery
 from core.storage import get_storage
 
 log = logging.getLogger(__name__)

@@ -6,24 +6,23 @@ import logging
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import JSONResponse
 
+from app.api.deps import AdminClient, CurrentClient, SettingsDep
+from app.problems import Problem
+from app.schemas import ModelOut
+from core.library import get_library, get_store
 from vehicle_pose import EmptyMeshError, ModelError, UnknownModelError
 from vehicle_pose.model.library import MODEL_ID, install_model
 from vehicle_pose.model.metadata import UNITS, ModelInfo
 
-from core.library import get_library, get_store
-from app.problems import Problem
-from app.schemas import ModelOut
-from app.api.deps import AdminClient, CurrentClient, SettingsDep
-
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/models", tags=["models"])
 
-_PROBLEM = {"content": {"application/problem+json": {}}}
+_PROBLEM: dict[str, Any] = {"content": {"application/problem+json": {}}}
 MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 Axis = Literal["+x", "-x", "+y", "-y", "+z", "-z"]
 

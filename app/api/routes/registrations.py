@@ -3,17 +3,14 @@
 from __future__ import annotations
 
 import logging
-from typing import Annotated
+from typing import Annotated, Any, cast
 
 from fastapi import APIRouter, File, Form, Header, Response, UploadFile, status
 from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 
-from core.queue import TASK, get_celery
-
+from app.api.deps import CurrentClient, SessionDep, SettingsDep
 from app.problems import Problem
-from core.storage import get_storage
-from core.models import JobStatus, Registration
 from app.registrations import (
     check_model,
     check_photo,
@@ -26,17 +23,19 @@ from app.registrations import (
     stored_response,
     visible_job,
 )
-from app.schemas import RegistrationAccepted, RegistrationOut
-from app.api.deps import CurrentClient, SessionDep, SettingsDep
+from app.schemas import RegistrationAccepted, RegistrationOut, Status
+from core.models import JobStatus, Registration
+from core.queue import TASK, get_celery
+from core.storage import get_storage
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/registrations", tags=["registrations"])
 
-_PROBLEM = {"content": {"application/problem+json": {}}}
+_PROBLEM: dict[str, Any] = {"content": {"application/problem+json": {}}}
 
 
 def _accepted(job: Registration) -> JSONResponse:
-    body = RegistrationAccepted(id=job.id, status=job.status, links=links(job))
+    body = RegistrationAccepted(id=job.id, status=cast(Status, job.status), links=links(job))
     return JSONResponse(body.model_dump(mode="json"), status_code=202, headers={"Location": body.links.self})
 
 
@@ -103,7 +102,8 @@ def status_of(job_id: str, client: CurrentClient, session: SessionDep) -> Regist
     return job_out(visible_job(session, client, job_id))
 
 
-@router.get("/{job_id}/overlay.png", response_class=Response, responses={200: {"content": {"image/png": {}}}, 404: _PROBLEM})
+@router.get("/{job_id}/overlay.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}, 404: _PROBLEM})
 def overlay(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
     """The registered model's outline drawn on the photo (PNG), once the job succeeded."""
     return stored_response(visible_job(session, client, job_id).overlay_key, "image/png", "overlay")
