@@ -45,14 +45,14 @@ def get_engine() -> Engine:
 
 
 @lru_cache
-def _session_factory() -> sessionmaker[Session]:
+def session_factory() -> sessionmaker[Session]:
     return sessionmaker(bind=get_engine(), expire_on_commit=False)
 
 
 @contextmanager
 def session_scope() -> Iterator[Session]:
     """A session committed on success and rolled back on error."""
-    session = _session_factory()()
+    session = session_factory()()
     try:
         yield session
         session.commit()

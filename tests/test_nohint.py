@@ -17,7 +17,7 @@ from vehicle_pose.model.mesh import KINDS
 from vehicle_pose.registration.credibility import confidence
 from vehicle_pose.registration.identify import identify
 from vehicle_pose.render.overlay import save_png
-from vehicle_pose.render.synth import LIGHTINGS, _background, synthesize
+from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
 from vehicle_pose.search.views import (
     distinct,
     score_cameras,
@@ -213,7 +213,7 @@ def test_a_second_pass_searches_again_and_keeps_the_lower_loss(library, renderer
 @pytest.mark.slow
 def test_a_photo_without_a_vehicle_is_flagged_failed(library, renderer):
     rng = np.random.default_rng(4)
-    photo = (np.clip(_background(480, 640, rng), 0, 1) * 255).astype(np.uint8)
+    photo = (np.clip(background(480, 640, rng), 0, 1) * 255).astype(np.uint8)
     result = register(photo, library.load("sedan"), renderer=renderer,
                       options=RegistrationOptions.from_flat(starts=2, refine=1, max_evaluations=150))
     assert result.failed and result.confidence is not None and result.confidence < 0.5

@@ -10,9 +10,9 @@ import pytest
 from vehicle_pose.registry import OPTIMIZERS
 from vehicle_pose.search.optimize import (
     CMAES,
+    Counted,
     NelderMeadRestarts,
-    _basis_along,
-    _Counted,
+    basis_along,
 )
 
 
@@ -45,23 +45,23 @@ def test_keeps_to_its_budget(follow):
 
 def test_pattern_moves_double_while_the_loss_falls_and_stop_at_the_first_rise():
     """From x = 0 along (1, 0): 1, 2, 4 improve on f = (x - 5)^2, 8 does not; 4 is kept."""
-    counted = _Counted(lambda x: float((x[0] - 5.0) ** 2 + x[1] ** 2))
+    counted = Counted(lambda x: float((x[0] - 5.0) ** 2 + x[1] ** 2))
     counted(np.zeros(2))
-    NelderMeadRestarts()._pattern(counted, np.zeros(2), np.array([1.0, 0.0]), max_evaluations=100)
+    NelderMeadRestarts().pattern_search(counted, np.zeros(2), np.array([1.0, 0.0]), max_evaluations=100)
     assert counted.count == 1 + 4
     np.testing.assert_allclose(counted.best_x, [4.0, 0.0])
 
 
 def test_pattern_moves_keep_to_the_budget():
-    counted = _Counted(lambda x: -float(x[0]))
+    counted = Counted(lambda x: -float(x[0]))
     counted(np.zeros(1))
-    NelderMeadRestarts(pattern_moves=10)._pattern(counted, np.zeros(1), np.ones(1), max_evaluations=3)
+    NelderMeadRestarts(pattern_moves=10).pattern_search(counted, np.zeros(1), np.ones(1), max_evaluations=3)
     assert counted.count == 3
 
 
 def test_basis_along_a_direction_is_orthonormal_and_starts_with_it():
     d = np.array([0.3, -1.0, 0.2, 0.0, 2.0, 0.1, -0.4])
-    q = _basis_along(d)
+    q = basis_along(d)
     np.testing.assert_allclose(q.T @ q, np.eye(7), atol=1e-12)
     np.testing.assert_allclose(abs(q[:, 0] @ d) / np.linalg.norm(d), 1.0, atol=1e-12)
 

@@ -155,10 +155,10 @@ def test_cli_empty_mesh_and_bad_camera_json(tmp_path):
 
 @pytest.mark.parametrize("up,forward", [("+z", "-y"), ("-y", "+x"), ("-Z", "-X")])
 def test_cli_takes_signed_axes_as_documented(up, forward):
-    from vehicle_pose.cli import _join_signed_axes, _parser
+    from vehicle_pose.cli import build_parser, join_signed_axes
 
     argv = ["register", "p.jpg", "--model", "m.obj", "--out", "r.json", "--up", up, "--forward", forward]
-    args = _parser().parse_args(_join_signed_axes(argv))
+    args = build_parser().parse_args(join_signed_axes(argv))
     assert (args.up, args.forward) == (up, forward)
 
 

@@ -94,7 +94,7 @@ def service_db(tmp_path, monkeypatch):
     from core import library, storage
 
     monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
-    caches = (config.get_settings, db.get_engine, db._session_factory, storage.get_storage, library.get_library)
+    caches = (config.get_settings, db.get_engine, db.session_factory, storage.get_storage, library.get_library)
     for cache in caches:
         cache.cache_clear()
     upgrade()
@@ -254,7 +254,7 @@ def test_postgresql_migrations_jobs_and_metrics(postgres_url, monkeypatch, tmp_p
 
     monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
     monkeypatch.setenv("VP_DATABASE_URL", postgres_url)
-    caches = (config.get_settings, db.get_engine, db._session_factory, storage.get_storage, library.get_library)
+    caches = (config.get_settings, db.get_engine, db.session_factory, storage.get_storage, library.get_library)
     for cache in caches:
         cache.cache_clear()
     try:

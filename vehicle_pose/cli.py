@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 # The renderer, the optimisers and trimesh are imported by the commands that use them:
 # ``--help`` and ``models`` answer without them.
 
-__all__ = ["main"]
+__all__ = ["main", "build_parser", "join_signed_axes"]
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:  # one line, exit 2, as for other bad input
@@ -34,7 +34,7 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="vehicle-pose", description="Register a vehicle's 3D model onto a photo.")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -204,7 +204,7 @@ def _models(args: argparse.Namespace) -> int:
 _AXIS_OPTIONS = ("--up", "--forward")
 
 
-def _join_signed_axes(argv: list[str]) -> list[str]:
+def join_signed_axes(argv: list[str]) -> list[str]:
     """``--forward -y`` as ``--forward=-y``: argparse takes a value that starts with a dash
     for an option of its own, and a mesh's axes are often negative."""
     out: list[str] = []
@@ -221,7 +221,7 @@ def _join_signed_axes(argv: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(_join_signed_axes(list(sys.argv[1:] if argv is None else argv)))
+    args = build_parser().parse_args(join_signed_axes(list(sys.argv[1:] if argv is None else argv)))
     try:
         if args.command == "register":
             return _register(args)

@@ -20,7 +20,7 @@ from vehicle_pose.model.mesh import KINDS, Mesh
 from vehicle_pose.render.renderer import Renderer
 
 __all__ = ["Lighting", "LIGHTINGS", "HAZARDS", "synthesize", "synthesize_hazard", "border_crop_camera",
-           "random_framed_view"]
+           "random_framed_view", "background"]
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,8 @@ def _smooth_texture(height: int, width: int, rng: np.random.Generator, cells: in
     return out
 
 
-def _background(height: int, width: int, rng: np.random.Generator) -> npt.NDArray[np.float64]:
+def background(height: int, width: int, rng: np.random.Generator) -> npt.NDArray[np.float64]:
+    """A random textured background (height, width, 3) in [0, 1]: smooth noise at three scales."""
     layers = np.zeros((height, width, 3))
     for cells, amp in ((4, 0.35), (16, 0.2), (64, 0.1)):
         layers += amp * _smooth_texture(height, width, rng, cells, 3)
@@ -83,7 +84,7 @@ def synthesize(
     if lighting.negative:
         colour = 1.0 - colour
     rng = np.random.default_rng(seed)
-    img = _background(camera.height, camera.width, rng)
+    img = background(camera.height, camera.width, rng)
     img[mask] = colour[mask]
     img += rng.normal(0.0, noise, img.shape)
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), mask

@@ -30,7 +30,9 @@ def _cma() -> Any:
     return cma
 
 
-__all__ = ["OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "make_optimizer"]
+__all__ = [
+    "OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "Counted", "basis_along", "make_optimizer",
+]
 
 FloatArray = npt.NDArray[np.float64]
 Objective = Callable[[FloatArray], float]
@@ -52,7 +54,7 @@ class Optimizer(Protocol):
         ...
 
 
-class _Counted:
+class Counted:
     """Counts evaluations and remembers the best point seen."""
 
     def __init__(self, fun: Objective) -> None:
@@ -125,7 +127,7 @@ class NelderMeadRestarts:
     pattern_moves: int = 4
 
     def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
-        counted = _Counted(fun)
+        counted = Counted(fun)
         x = np.asarray(x0, dtype=np.float64)
         s = np.asarray(steps, dtype=np.float64)
         best = counted(x)
@@ -140,8 +142,8 @@ class NelderMeadRestarts:
             if self.follow and moved is not None and np.any(moved):
                 # Pattern moves along the last run's displacement, doubling while they improve,
                 # then a simplex with its first edge along it.
-                self._pattern(counted, x, moved * s, max_evaluations)
-                basis = _basis_along(moved)
+                self.pattern_search(counted, x, moved * s, max_evaluations)
+                basis = basis_along(moved)
             # Search in coordinates scaled by the steps, so one tolerance suits every parameter.
             origin = counted.best_x.copy()  # type: ignore[union-attr]
             history: list[float] = []
@@ -176,7 +178,9 @@ class NelderMeadRestarts:
             scale *= self.shrink
         return counted.result(max(restarts, 0))
 
-    def _pattern(self, counted: _Counted, x: FloatArray, step: FloatArray, max_evaluations: int) -> None:
+    def pattern_search(self, counted: Counted, x: FloatArray, step: FloatArray, max_evaluations: int) -> None:
+        """Steps from ``x`` along ``step``, doubling while the loss falls (at most
+        ``pattern_moves`` steps, within the budget); ``counted`` keeps the best point."""
         best = counted.best_f
         k = 1.0
         for _ in range(self.pattern_moves):
@@ -186,7 +190,7 @@ class NelderMeadRestarts:
             k *= 2.0
 
 
-def _basis_along(d: FloatArray) -> FloatArray:
+def basis_along(d: FloatArray) -> FloatArray:
     """An orthonormal basis (columns) whose first vector is ``d`` normalised."""
     q, _ = np.linalg.qr(np.column_stack([d / np.linalg.norm(d), np.eye(len(d))]))
     return q[:, : len(d)]
@@ -200,7 +204,7 @@ class Powell:
     ftol: float = 1e-5
 
     def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
-        counted = _Counted(fun)
+        counted = Counted(fun)
         s = np.asarray(steps, dtype=np.float64)
         x0 = np.asarray(x0, dtype=np.float64)
         counted(x0)
@@ -243,7 +247,7 @@ class CMAES:
     ftol: float = 1e-6
 
     def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
-        counted = _Counted(fun)
+        counted = Counted(fun)
         s = np.asarray(steps, dtype=np.float64)
         x0 = np.asarray(x0, dtype=np.float64)
         counted(x0)
