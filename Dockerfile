@@ -19,6 +19,7 @@ COPY pyproject.toml README.md alembic.ini ./
 COPY vehicle_pose ./vehicle_pose
 COPY app ./app
 COPY worker ./worker
+COPY core ./core
 RUN pip install '.[service,postgres,s3]' \
  && python -c "from vehicle_pose.loss.moments import warm_up; warm_up()" \
  && python -c "import numpy as np; from vehicle_pose.model.loading import oriented_faces; oriented_faces(np.array([[0, 1, 2], [0, 1, 3]]))" \

@@ -24,7 +24,7 @@ import numpy as np
 
 from common import perturbed, projection_error, table, write_report
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "service"))
 from vehicle_pose.geometry.camera import Camera, look_at_camera  # noqa: E402
 from vehicle_pose.model.library import ModelLibrary  # noqa: E402
 from vehicle_pose.model.metadata import parse_axis  # noqa: E402

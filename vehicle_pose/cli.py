@@ -12,7 +12,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from vehicle_pose import __version__
 from vehicle_pose.errors import RenderError, VehiclePoseError
@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 # The renderer, the optimisers and trimesh are imported by the commands that use them:
 # ``--help`` and ``models`` answer without them.
 
-__all__ = ["main", "build_parser", "join_signed_axes"]
+__all__ = ["main", "build_parser", "join_signed_axes", "options_from_args"]
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:  # one line, exit 2, as for other bad input
@@ -95,10 +95,11 @@ def _add_option_flags(parser: argparse.ArgumentParser) -> None:
                                 help=f"{spec.help} (default {f.default})")
 
 
-def _options_given(args: argparse.Namespace) -> dict[str, Any]:
-    """The registration options set on the command line, by name."""
-    return {name: getattr(args, name) for name, _, spec in RegistrationOptions.specs()
-            if spec.public and getattr(args, name, None) is not None}
+def options_from_args(args: argparse.Namespace) -> RegistrationOptions:
+    """The registration options: the defaults, with those set on the command line."""
+    given = {name: getattr(args, name) for name, _, spec in RegistrationOptions.specs()
+             if spec.public and getattr(args, name, None) is not None}
+    return RegistrationOptions.from_flat(given)
 
 
 def _store(args: argparse.Namespace) -> ModelStore | None:
@@ -170,7 +171,7 @@ def _register(args: argparse.Namespace) -> int:
     photo = load_photo(args.photo)
     models = _load_models(args, [args.model])
     init = Camera.load(args.init_camera) if args.init_camera else None
-    options = RegistrationOptions.from_flat(_options_given(args))
+    options = options_from_args(args)
     result, data = register_or_identify(photo, models, init_camera=init, bbox=args.bbox, options=options)
     model = result.model
     out = Path(args.out)

@@ -3,11 +3,11 @@
 The loss needs, over the pixels a rendered model covers, the sums of the photo attributes F
 and of the model attributes M and of their products (method.md §2). With NumPy that is a
 chain of gathers, casts and small matrix products, each a pass over memory; this kernel makes
-one pass over the read-back window and accumulates everything in float64. It is 3-4 times
-faster than the NumPy path on the photoreal models (docs/benchmarks.md) and agrees with it to
-rounding (tests/test_loss.py). :func:`frame_loss` goes on to the loss itself in the same
-compiled call: assembled in NumPy, the covariances and their eigen-decomposition cost as much
-as the pass over the pixels (0.1 ms for a 10 x 10 model covariance).
+one pass over the read-back window and accumulates everything in float64, and agrees with the
+NumPy path to rounding (tests/loss/test_moments.py). :func:`frame_loss` goes on to the loss
+itself in the same compiled call: assembled in NumPy, the covariances and their
+eigen-decomposition cost as much as the pass over the pixels
+(docs/decisions/0010-rendering-costs.md).
 
 Compiled on first use and cached beside this file (``NUMBA_CACHE_DIR`` moves the cache).
 """

@@ -284,7 +284,7 @@ def write_model(spec: CarSpec, root: str | Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
-    root = Path(args[0]) if args else Path(__file__).resolve().parents[1] / "vehicle_models"
+    root = Path(args[0]) if args else Path(__file__).resolve().parents[2] / "vehicle_models"
     for spec in SPECS:
         print(write_model(spec, root))
     return 0

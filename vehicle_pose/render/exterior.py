@@ -112,7 +112,7 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
       nothing. The winding of Internet CAD does not matter, as it is what was seen that
       decides. Faces seen from both sides (thin sheets, a mirror, a fin) stay two-sided.
 
-    Rendering the result gives the same pixels as rendering the mesh (tests/test_render.py).
+    Rendering the result gives the same pixels as rendering the mesh (tests/render/test_exterior.py).
     Cached per mesh object and arguments, for every renderer of the process; the pass costs
     0.3-0.7 s for the photoreal models' levels of detail on two CPU cores.
     """

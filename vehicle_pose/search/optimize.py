@@ -88,10 +88,8 @@ class NelderMeadRestarts:
         One run stops after this many evaluations and the search restarts from its best point
         (0: a run goes on until its own tests stop it). A long simplex run in seven dimensions
         flattens along the valley it follows and crawls; a fresh simplex, with its first edge
-        along the way the last run went (``follow``), moves on. With 60, ten synthetic cases
-        with the true mask ended at most 0.91 px off instead of two of them 3.2 and 28 px, and
-        the photoreal cases registered at 1360 rather than 1450 evaluations
-        (docs/benchmarks.md).
+        along the way the last run went (``follow``), moves on
+        (docs/decisions/0009-simplex-restarts.md).
     min_gain : float
         A restart that lowers the loss by less stops the search.
     xtol : float
@@ -223,10 +221,8 @@ class CMAES:
 
     It learns the local covariance of good steps, so it walks along a narrow diagonal valley
     that stops a simplex: near-frontal and near-rear views with a short lens, where
-    elevation, vertical position, scale and focal length trade against each other, left the
-    simplex (restarts or not) 11-16 px from a pose scoring 6-50 times lower, with the loss
-    falling all the way along the straight line to it; from the same poses CMA-ES reached it
-    (docs/engine.md).
+    elevation, vertical position, scale and focal length trade against each other, leave the
+    simplex short of a pose that scores far lower (docs/decisions/0007-no-hint-search.md).
 
     Parameters
     ----------

@@ -136,8 +136,8 @@ def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, sh
     A side of the box on the photo's border says nothing (the vehicle may go on beyond the
     frame) and is not checked; points behind the camera count as far out. Falling short of
     the box counts only with ``shortfall``, beyond that fraction of its size: a box drawn by
-    hand is often loose, and measured on the real and photoreal cases a two-sided term with
-    the same tolerance cost accuracy on both (docs/engine.md).
+    hand is often loose, and a two-sided term with the same tolerance cost accuracy on the real
+    and the photoreal cases (docs/decisions/0006-real-photo-terms.md).
     """
     uv = camera.project(points)
     if not np.all(np.isfinite(uv)):

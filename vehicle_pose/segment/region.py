@@ -81,10 +81,8 @@ def find_vehicle(
     ----------
     rgb : (H, W, 3) uint8
     size : int, keyword-only
-        GrabCut runs on the photo reduced to this longer side. On the photoreal cases 320
-        gave regions closer to the true mask than 256 (the best of the three rectangles: mean
-        IoU 0.84 against 0.77; 400: 0.85 at 1.6 times the cost), and no-hint success rose from
-        70 to 75 % (docs/benchmarks.md).
+        GrabCut runs on the photo reduced to this longer side
+        (docs/decisions/0007-no-hint-search.md).
     border : (fx, fy), keyword-only
         Fractions of the width and height outside the start rectangle (certain background).
     iterations : int, keyword-only

@@ -1,0 +1,24 @@
+"""The confidence of a pose found without a start camera."""
+
+from __future__ import annotations
+
+import pytest
+
+from vehicle_pose.registration.credibility import confidence
+
+
+@pytest.mark.parametrize(
+    "checks,credible",
+    [
+        ({"loss": 0.05, "margin": 0.5, "agreement": 0.0, "region_iou": 0.95}, True),
+        # A distinct pose fits as well: ambiguous however many starts ended at the winner.
+        ({"loss": 0.05, "margin": 0.0, "agreement": 0.67, "region_iou": 0.95}, False),
+        ({"loss": 0.25, "margin": 0.5, "agreement": 0.0, "region_iou": 0.95}, False),  # poor fit
+        ({"loss": 0.05, "margin": 0.05, "agreement": 0.0, "region_iou": 0.95}, False),  # a rival as good
+        ({"loss": 0.05, "margin": 0.5, "agreement": 0.0, "region_iou": 0.55}, False),  # not the vehicle
+        ({"loss": 0.05, "margin": 0.5}, False),  # no region measured
+    ],
+)
+def test_confidence_needs_fit_uniqueness_and_region(checks, credible):
+    value = confidence(checks)
+    assert 0.0 <= value <= 1.0 and (value >= 0.5) == credible

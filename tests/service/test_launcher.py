@@ -1,0 +1,95 @@
+"""Service parts without the queue: settings, storage, sniffing, migrations, the job runner."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+
+from service_stack import encode, redis_of, start_stack, submit, wait_for
+
+
+def test_create_key_needs_the_service_database(tmp_path):
+    service = Path(__file__).resolve().parents[2] / ".venv" / "bin" / "vehicle-pose-service"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("VP_")}
+    empty = tmp_path / "empty"
+    refused = subprocess.run([str(service), "create-key", "someone", "--data-dir", str(empty)], env=env,
+                             capture_output=True, text=True, cwd=tmp_path)
+    assert refused.returncode == 2 and "no service database" in refused.stderr and not refused.stdout
+    assert not (tmp_path / "data").exists() and not (empty / "vehicle_pose.db").exists()
+    data = tmp_path / "svc"
+    subprocess.run([str(service), "migrate", "--data-dir", str(data)], env=env, check=True, capture_output=True)
+    made = subprocess.run([str(service), "create-key", "someone", "--data-dir", str(data)], env=env,
+                          capture_output=True, text=True, check=True)
+    assert made.stdout.strip().startswith("vp_")
+
+
+def test_the_launcher_restarts_its_redis_and_the_service_carries_on(tmp_path, scene):
+    stack = start_stack(tmp_path, workers=1)
+    try:
+        pid, port = redis_of(stack)
+        os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            assert stack.proc.poll() is None, stack.log_tail()
+            assert httpx.get(f"{stack.url}/healthz", timeout=5).status_code == 200
+            try:
+                again, again_port = redis_of(stack)
+            except AssertionError:
+                time.sleep(0.2)
+                continue
+            if again != pid:
+                break
+            time.sleep(0.2)
+        else:
+            raise AssertionError(f"redis was not restarted:\n{stack.log_tail()}")
+        assert again_port == port  # the same URL for every client
+        assert "redis-server exited" in stack.log.read_text()
+        with stack.client() as c:
+            deadline = time.monotonic() + 60
+            while True:
+                r = submit(c, encode(scene[0]), start=scene[2])
+                if r.status_code == 202 or time.monotonic() > deadline:
+                    break
+                assert r.status_code == 503, r.text  # while the workers reconnect
+                time.sleep(1.0)
+            assert r.status_code == 202, r.text
+            assert wait_for(c, r.json()["id"], timeout=120)["status"] == "succeeded"
+    finally:
+        stack.stop()
+
+
+def _status(data_dir: Path, job_id: str) -> tuple[str, int]:
+    with sqlite3.connect(data_dir / "vehicle_pose.db") as db:
+        return db.execute("SELECT status, attempts FROM registrations WHERE id = ?", (job_id,)).fetchone()
+
+
+def test_a_stop_hands_running_jobs_back_and_they_run_after_the_restart(tmp_path, scene):
+    stack = start_stack(tmp_path, workers=1, drain=1.0)
+    try:
+        with stack.client() as c:
+            options = json.dumps({"max_evaluations": 2000})
+            job_id = submit(c, encode(scene[0]), start=scene[2], options=options).json()["id"]
+            wait_for(c, job_id, until=("running",), timeout=60)
+            time.sleep(2.0)
+    finally:
+        t = time.monotonic()
+        stack.stop()
+    assert stack.proc.returncode == 0 and time.monotonic() - t < 60
+    log = stack.log.read_text()
+    assert "handing them back to the queue" in log
+    status, attempts = _status(tmp_path, job_id)
+    assert (status, attempts) == ("queued", 1), log[-3000:]
+    stack = start_stack(tmp_path, workers=1)
+    try:
+        with stack.client() as c:
+            body = wait_for(c, job_id, timeout=240)
+            assert body["status"] == "succeeded" and body["attempts"] == 2, body
+    finally:
+        stack.stop()

@@ -1,0 +1,116 @@
+"""The job runner: failed, duplicate and late-bad jobs, results, overlays and thumbnails."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from sqlalchemy import select
+
+from core import config, db
+from core.migrate import upgrade
+from core.models import Client, JobStatus, Registration
+from core.security import create_client
+from vehicle_pose.render.synth import synthesize
+
+from helpers import view
+from service_stack import encode
+
+
+@pytest.fixture
+def service_db(tmp_path, monkeypatch):
+    """Settings, database and storage of a service in ``tmp_path`` (no broker needed)."""
+    from core import library, storage
+
+    monkeypatch.setenv("VP_DATA_DIR", str(tmp_path))
+    caches = (config.get_settings, db.get_engine, db.session_factory, storage.get_storage, library.get_library)
+    for cache in caches:
+        cache.cache_clear()
+    upgrade()
+    with db.session_scope() as s:
+        create_client(s, "tester")
+        client_id = s.scalars(select(Client.id)).one()
+    yield client_id, storage.get_storage()
+    db.get_engine().dispose()
+    for cache in caches:
+        cache.cache_clear()
+
+
+def _job(client_id: str, store, photo: bytes, **fields) -> str:
+    with db.session_scope() as s:
+        job = Registration(client_id=client_id, model_id="sedan", photo_key="photos/p", photo_media_type="image/png",
+                           photo_width=320, photo_height=240, options={}, **fields)
+        s.add(job)
+        s.flush()
+        job_id = job.id
+    store.put("photos/p", photo, "image/png")
+    return job_id
+
+
+def _record(job_id: str) -> Registration:
+    with db.session_scope() as s:
+        job = s.get(Registration, job_id)
+        s.expunge(job)
+        return job
+
+
+@pytest.fixture(scope="module")
+def small_photo(sedan, renderer):
+    truth = view(sedan, 60.0, 15.0, width=320, height=240, focal=450.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer)
+    return encode(photo), truth
+
+
+def test_run_job_fails_a_job_whose_worker_kept_dying(service_db, small_photo):
+    from worker.jobs import run_job
+
+    client_id, store = service_db
+    job_id = _job(client_id, store, small_photo[0], attempts=3, status=JobStatus.running.value)
+    assert run_job(job_id) == "skipped"
+    job = _record(job_id)
+    assert job.status == "failed" and job.error_type == "worker-lost" and job.duration_s is not None
+
+
+def test_run_job_ignores_a_duplicate_delivery_of_a_finished_job(service_db, small_photo):
+    from worker.jobs import run_job
+
+    client_id, store = service_db
+    job_id = _job(client_id, store, small_photo[0], status=JobStatus.succeeded.value, attempts=1)
+    assert run_job(job_id) == "skipped"
+    assert _record(job_id).attempts == 1
+
+
+def test_run_job_reports_bad_input_found_late(service_db, small_photo):
+    from worker.jobs import run_job
+
+    client_id, store = service_db
+    truth = small_photo[1]
+    behind = truth.to_dict() | {"t": [0.0, 0.0, -8.0]}
+    job_id = _job(client_id, store, small_photo[0], init_camera=behind)
+    assert run_job(job_id) == "failed"
+    job = _record(job_id)
+    assert job.error_type == "invalid-pose", job.error_detail
+    assert job.attempts == 1
+
+    gone = _job(client_id, store, small_photo[0])
+    store.delete("photos/p")
+    assert run_job(gone) == "failed"
+    assert _record(gone).error_type == "photo-missing"
+
+
+def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, sedan):
+    from vehicle_pose.geometry.camera import Camera
+    from worker.jobs import run_job
+
+    from helpers import perturbed, projection_error
+
+    client_id, store = service_db
+    truth = small_photo[1]
+    job_id = _job(client_id, store, small_photo[0], init_camera=perturbed(truth, 3, degrees=4.0).to_dict())
+    assert run_job(job_id) == "succeeded"
+    job = _record(job_id)
+    assert job.status == "succeeded" and job.stage == "done" and job.attempts == 1
+    assert projection_error(sedan, Camera.from_dict(job.result["camera"]), truth) < 1.0
+    assert store.get(job.overlay_key)[:8] == b"\x89PNG\r\n\x1a\n"
+    assert store.get(job.thumbnail_key)[:3] == b"\xff\xd8\xff"
+    json.dumps(job.result)
