@@ -31,6 +31,12 @@ _WHERE = {
     "decode_photo": "photo",
     "load_photo": "photo",
     "RegistrationOptions": "registration.options",
+    "Pyramid": "registration.options",
+    "Segmentation": "registration.options",
+    "Terms": "registration.options",
+    "Budgets": "registration.options",
+    "Probes": "registration.options",
+    "Search": "registration.options",
     "RegistrationResult": "registration.result",
     "register": "registration.register",
     "ModelStore": "model.store",
@@ -59,7 +65,15 @@ if TYPE_CHECKING:
     from vehicle_pose.model.mesh import Mesh
     from vehicle_pose.model.store import ModelStore
     from vehicle_pose.photo import decode_photo, load_photo
-    from vehicle_pose.registration.options import RegistrationOptions
+    from vehicle_pose.registration.options import (
+        Budgets,
+        Probes,
+        Pyramid,
+        RegistrationOptions,
+        Search,
+        Segmentation,
+        Terms,
+    )
     from vehicle_pose.registration.register import register
     from vehicle_pose.registration.result import RegistrationResult
 
@@ -82,6 +96,7 @@ def __dir__() -> list[str]:
 __version__ = "0.1.0"
 
 __all__ = [
+    "Budgets",
     "Camera",
     "CameraError",
     "EmptyMeshError",
@@ -94,9 +109,14 @@ __all__ = [
     "PhotoTooLargeError",
     "PhotoTarget",
     "PoseError",
+    "Probes",
+    "Pyramid",
     "RegistrationOptions",
     "RegistrationResult",
     "RenderError",
+    "Search",
+    "Segmentation",
+    "Terms",
     "Theta",
     "UnknownModelError",
     "VehicleModel",
