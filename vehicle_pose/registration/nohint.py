@@ -20,6 +20,7 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.window import Window
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.registration.credibility import confidence, fit_checks
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
@@ -30,7 +31,7 @@ from vehicle_pose.search.views import Box, Candidate, distinct, refocus, score_c
 from vehicle_pose.search.wheels import detect_wheels, wheel_candidates
 from vehicle_pose.segment.region import VehicleRegion, find_vehicle
 
-__all__ = ["SearchPass", "search_pass", "search_starts"]
+__all__ = ["SearchPass", "search", "search_pass", "search_starts"]
 
 
 @dataclass
@@ -232,3 +233,34 @@ def search_pass(
         "agreement": len(near) / max(1, len(plain) - 1),
     }
     return SearchPass(polished, levels, best_cand, region, checks, listed, spent, grabcut_seconds, timings)
+
+
+def search(
+    work: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    rect: Box | None,
+    fg: npt.NDArray[np.bool_] | None,
+    options: RegistrationOptions,
+    renderer: Renderer,
+    optimizer: Optimizer,
+    progress: Progress | None,
+) -> SearchPass:
+    """One search pass, judged (``checks``); when its pose is not credible, a second pass in the
+    foreground segmented around that pose, usually closer to the vehicle than the region found
+    with no pose at all, and the lower loss wins. The region check stays against the first
+    region, found before any pose was known."""
+    first = search_pass(work, model, rect, fg, None, options, renderer, optimizer, progress)
+    checks = first.checks | fit_checks(work, model, first.fit, first.region, options.color, renderer)
+    result = replace(first, checks=checks)
+    if fg is None and options.search.second_pass and confidence(checks) < options.search.min_confidence:
+        t = time.perf_counter()
+        again = search_pass(work, model, rect, fg, VehicleRegion.from_mask(first.fit.foreground), options,
+                            renderer, optimizer, progress, "second pass: ")
+        if again.fit.objective < first.fit.objective:
+            checks = again.checks | fit_checks(work, model, again.fit, first.region, options.color, renderer)
+            result = replace(again, region=first.region, checks=checks)
+        result = replace(result, spent=[*first.spent, *again.spent],
+                         grabcut_seconds=first.grabcut_seconds + again.grabcut_seconds,
+                         timings={**first.timings, "second_pass": time.perf_counter() - t},
+                         checks={**result.checks, "passes": 2.0})
+    return result

@@ -20,13 +20,12 @@ from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized, resized_mask
 from vehicle_pose.registration.credibility import confidence, fit_checks
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
-from vehicle_pose.registration.nohint import search_pass
+from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, make_optimizer
 from vehicle_pose.search.views import Box, fit_to_box, parse_bbox
-from vehicle_pose.segment.region import VehicleRegion
 
 __all__ = ["register"]
 
@@ -127,7 +126,6 @@ def register(
 
     timings: dict[str, float] = {}
     listed: list[dict[str, Any]] = []
-    region: VehicleRegion | None = None
     if init_camera is not None:
         source, method = "init_camera", "given"
         timings["start"] = 0.0
@@ -140,28 +138,11 @@ def register(
         # The search without a start camera runs without the edge term, and says so in the
         # options it reports (docs/decisions/0007-no-hint-search.md).
         options = options.replace(edge_weight=0.0)
-        search = search_pass(work, model, rect, fg, None, options, renderer, optimizer, progress)
-        found, levels, region, checks = search.fit, search.levels, search.region, search.checks
-        start, method = search.candidate.camera, search.candidate.source
-        listed, spent, grabcut_seconds = search.listed, search.spent, search.grabcut_seconds
-        timings.update(search.timings)
-        checks |= fit_checks(work, model, found, region, options.color, renderer)
-        if fg is None and options.search.second_pass and confidence(checks) < options.search.min_confidence:
-            # Not credible: search again in the foreground segmented around the pose found,
-            # usually closer to the vehicle than the region found with no pose at all, and
-            # keep the lower loss. The region check stays against the first region, found
-            # before any pose was known.
-            t = time.perf_counter()
-            again = search_pass(work, model, rect, fg, VehicleRegion.from_mask(found.foreground), options,
-                                renderer, optimizer, progress, "second pass: ")
-            spent += again.spent
-            grabcut_seconds += again.grabcut_seconds
-            timings["second_pass"] = time.perf_counter() - t
-            if again.fit.objective < found.objective:
-                found, levels, checks, listed = again.fit, again.levels, again.checks, again.listed
-                start, method = again.candidate.camera, again.candidate.source
-                checks |= fit_checks(work, model, found, region, options.color, renderer)
-            checks["passes"] = 2.0
+        searched = search(work, model, rect, fg, options, renderer, optimizer, progress)
+        found, levels, checks, listed = searched.fit, searched.levels, searched.checks, searched.listed
+        start, method = searched.candidate.camera, searched.candidate.source
+        spent, grabcut_seconds = searched.spent, searched.grabcut_seconds
+        timings.update(searched.timings)
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
                    W0, H0, time.perf_counter() - t_start)
