@@ -31,12 +31,16 @@ from vehicle_pose import (
     decode_photo,
 )
 from vehicle_pose.errors import RenderError
+from vehicle_pose.photo import resized
 from vehicle_pose.registration.identify import register_or_identify
 from vehicle_pose.render.overlay import draw_overlay, encode_image
 
 log = logging.getLogger(__name__)
 
 THUMBNAIL_WIDTH = 320
+OVERLAY_MAX_SIZE = 2048
+"""The overlay's longer side, at most (pixels): drawn at a 24-megapixel photo's own size, the
+render behind it alone holds 16 bytes a pixel (384 MB)."""
 
 
 class Retry(Exception):
@@ -49,6 +53,15 @@ def thumbnail(rgb: npt.NDArray[np.uint8], width: int = THUMBNAIL_WIDTH) -> bytes
     if w > width:
         rgb = cv2.resize(rgb, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
     return encode_image(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 85])
+
+
+def overlay_base(rgb: npt.NDArray[np.uint8], max_size: int = OVERLAY_MAX_SIZE) -> npt.NDArray[np.uint8]:
+    """The photo the overlay is drawn on: ``rgb`` reduced to at most ``max_size`` on its longer side."""
+    h, w = rgb.shape[:2]
+    s = max_size / max(h, w)
+    if s >= 1.0:
+        return rgb
+    return resized(rgb, max(1, round(w * s)), max(1, round(h * s)))
 
 
 def fail_job(job_id: str, error_type: str, detail: str) -> None:
@@ -116,7 +129,9 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     result, data = register_or_identify(photo, models, init_camera=init, bbox=job.bbox, options=options,
                                         progress=progress)
     model = result.model
-    overlay = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels)
+    base = overlay_base(photo)
+    del photo  # a large photo's array need not outlive the registration
+    overlay = draw_overlay(base, model.mesh, result.camera, wheels=model.wheels)
     overlay_key, thumb_key = f"overlays/{job.id}.png", f"thumbnails/{job.id}.jpg"
     storage.put(overlay_key, encode_image(overlay, ".png"), "image/png")
     storage.put(thumb_key, thumbnail(overlay), "image/jpeg")

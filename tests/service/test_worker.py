@@ -114,3 +114,26 @@ def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, se
     assert store.get(job.overlay_key)[:8] == b"\x89PNG\r\n\x1a\n"
     assert store.get(job.thumbnail_key)[:3] == b"\xff\xd8\xff"
     json.dumps(job.result)
+
+
+def test_the_overlay_of_a_large_photo_is_drawn_reduced_and_the_pose_is_the_photos(service_db, sedan, renderer):
+    import cv2
+    import numpy as np
+
+    from vehicle_pose.geometry.camera import Camera
+    from worker.jobs import OVERLAY_MAX_SIZE, run_job
+
+    from helpers import perturbed, projection_error
+
+    client_id, store = service_db
+    truth = view(sedan, 60.0, 15.0, width=2880, height=2160, focal=4050.0)
+    big, _ = synthesize(sedan.mesh, truth, renderer=renderer)
+    job_id = _job(client_id, store, encode(big), init_camera=perturbed(truth, 3, degrees=4.0).to_dict())
+    assert run_job(job_id) == "succeeded"
+    job = _record(job_id)
+    found = Camera.from_dict(job.result["camera"])
+    assert (found.width, found.height) == (2880, 2160)
+    assert projection_error(sedan, found.scaled(640, 480), truth.scaled(640, 480)) < 1.5
+    overlay = cv2.imdecode(np.frombuffer(store.get(job.overlay_key), np.uint8), cv2.IMREAD_COLOR)
+    assert overlay.shape[:2] == (round(2160 * OVERLAY_MAX_SIZE / 2880), OVERLAY_MAX_SIZE)
+

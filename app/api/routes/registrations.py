@@ -105,7 +105,8 @@ def status_of(job_id: str, client: CurrentClient, session: SessionDep) -> Regist
 @router.get("/{job_id}/overlay.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}, 404: _PROBLEM})
 def overlay(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
-    """The registered model's outline drawn on the photo (PNG), once the job succeeded."""
+    """The registered model's outline drawn on the photo (PNG, at most 2048 px on its longer side), once the
+    job succeeded."""
     return stored_response(visible_job(session, client, job_id).overlay_key, "image/png", "overlay")
 
 
