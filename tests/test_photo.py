@@ -75,3 +75,18 @@ def test_verification_refuses_what_decoding_refuses(cut):
 def test_decompression_bomb_is_refused():
     with pytest.raises(PhotoTooLargeError):
         decode_photo(_encode(Image.new("L", (5000, 5000)), "PNG"), max_pixels=1_000_000)
+
+
+def test_a_large_jpeg_can_be_decoded_reduced_to_at_least_the_size_asked():
+    rng = np.random.default_rng(0)
+    img = Image.fromarray((rng.random((60, 80, 3)) * 255).astype(np.uint8)).resize((3200, 2400))
+    buf = io.BytesIO()
+    img.save(buf, format="JPEG", quality=90)
+    data = buf.getvalue()
+    assert decode_photo(data).shape == (2400, 3200, 3)
+    reduced = decode_photo(data, reduce_to=800)
+    assert reduced.shape == (600, 800, 3) and verify_photo(data) == (3200, 2400)
+    assert decode_photo(data, reduce_to=1700).shape == (2400, 3200, 3)  # under twice the size asked: whole
+    png = io.BytesIO()
+    img.save(png, format="PNG")
+    assert decode_photo(png.getvalue(), reduce_to=800).shape == (2400, 3200, 3)  # only JPEG reduces while decoding

@@ -41,15 +41,22 @@ def _opened(data: bytes, max_pixels: int) -> Iterator[Image.Image]:
         raise PhotoError(f"image data is damaged or truncated: {exc}") from None
 
 
-def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
+def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS, reduce_to: int | None = None) -> npt.NDArray[np.uint8]:
     """Decode image bytes to an (H, W, 3) uint8 RGB array.
 
     EXIF orientation is applied; CMYK, 16-bit, palette, gray and alpha images are converted
     (alpha is composited over mid-gray). Raises PhotoError for anything that is not a complete
     image, and PhotoTooLargeError (a PhotoError) for one with more than ``max_pixels`` pixels;
-    the size is checked from the header, before anything is decoded.
+    the size is checked from the header, before anything is decoded. With ``reduce_to``, a JPEG
+    whose longer side is more than twice that is decoded at a half, a quarter or an eighth of
+    its size (in the compressed domain), its longer side still at least ``reduce_to``: the
+    array is then smaller than the photo (:func:`verify_photo` gives the photo's size).
     """
     with _opened(data, max_pixels) as img:
+        longer = max(img.width, img.height)
+        if reduce_to is not None and img.format == "JPEG" and longer >= 2 * reduce_to:
+            k = reduce_to / longer
+            img.draft(img.mode, (max(1, int(np.ceil(img.width * k))), max(1, int(np.ceil(img.height * k)))))
         img.load()
     img = ImageOps.exif_transpose(img)
     if img.mode in ("I;16", "I;16B", "I;16L", "I"):

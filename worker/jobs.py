@@ -121,13 +121,18 @@ class _Progress:
 
 
 def _register(job: Registration, storage: Storage, library: ModelLibrary, settings: Settings) -> None:
-    photo = decode_photo(storage.get(job.photo_key), max_pixels=settings.max_photo_pixels)
+    options = RegistrationOptions.from_flat(job.options)
+    # A large JPEG is decoded reduced, to twice the working size at least; the registration
+    # still answers in the photo's own pixels.
+    photo = decode_photo(storage.get(job.photo_key), max_pixels=settings.max_photo_pixels,
+                         reduce_to=2 * options.pyramid.max_size)
+    size = (job.photo_width, job.photo_height)
     models = [library.load(model_id) for model_id in library.resolve(job.model_id)]
     init = Camera.from_dict(job.init_camera) if job.init_camera else None
-    options = RegistrationOptions.from_flat(job.options)
     progress = _Progress(job.id, settings.progress_interval_s)
     result, data = register_or_identify(photo, models, init_camera=init, bbox=job.bbox, options=options,
-                                        progress=progress)
+                                        progress=progress,
+                                        photo_size=size if size != (photo.shape[1], photo.shape[0]) else None)
     model = result.model
     base = overlay_base(photo)
     del photo  # a large photo's array need not outlive the registration

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -158,3 +159,16 @@ def test_the_papers_nearly_orthographic_start_is_registered(sedan, renderer):
     result = register(photo, sedan, init_camera=start, renderer=renderer)
     assert projection_error(sedan, result.camera, truth) < 1.0
     assert result.camera.focal == pytest.approx(truth.focal, rel=0.05)
+
+
+def test_a_reduced_copy_of_the_photo_registers_in_the_photos_own_pixels(sedan, renderer):
+    truth = view(sedan, 70.0, 15.0, width=1280, height=960, focal=1800.0)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=6)
+    small = cv2.resize(photo, (640, 480), interpolation=cv2.INTER_AREA)
+    result = register(small, sedan, init_camera=perturbed(truth, 6, degrees=4.0), renderer=renderer,
+                      photo_size=(1280, 960))
+    assert (result.camera.width, result.camera.height) == (1280, 960)
+    assert projection_error(sedan, result.camera, truth) < 2.0
+    assert result.foreground.shape == (960, 1280)
+    with pytest.raises(ValueError, match="not a reduced"):
+        register(small, sedan, init_camera=truth, renderer=renderer, photo_size=(1280, 720))

@@ -37,9 +37,12 @@ def service_db(tmp_path, monkeypatch):
 
 
 def _job(client_id: str, store, photo: bytes, **fields) -> str:
+    from vehicle_pose.photo import verify_photo
+
+    width, height = verify_photo(photo)
     with db.session_scope() as s:
         job = Registration(client_id=client_id, model_id="sedan", photo_key="photos/p", photo_media_type="image/png",
-                           photo_width=320, photo_height=240, options={}, **fields)
+                           photo_width=width, photo_height=height, options={}, **fields)
         s.add(job)
         s.flush()
         job_id = job.id
@@ -116,7 +119,10 @@ def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, se
     json.dumps(job.result)
 
 
-def test_the_overlay_of_a_large_photo_is_drawn_reduced_and_the_pose_is_the_photos(service_db, sedan, renderer):
+@pytest.mark.parametrize("fmt", ["PNG", "JPEG"])
+def test_the_overlay_of_a_large_photo_is_drawn_reduced_and_the_pose_is_the_photos(service_db, sedan, renderer, fmt):
+    """A JPEG is also decoded reduced (to half its size here, twice the working size at least);
+    either way the pose answers in the photo's own pixels."""
     import cv2
     import numpy as np
 
@@ -128,7 +134,8 @@ def test_the_overlay_of_a_large_photo_is_drawn_reduced_and_the_pose_is_the_photo
     client_id, store = service_db
     truth = view(sedan, 60.0, 15.0, width=2880, height=2160, focal=4050.0)
     big, _ = synthesize(sedan.mesh, truth, renderer=renderer)
-    job_id = _job(client_id, store, encode(big), init_camera=perturbed(truth, 3, degrees=4.0).to_dict())
+    data = encode(big, fmt, quality=92) if fmt == "JPEG" else encode(big)
+    job_id = _job(client_id, store, data, init_camera=perturbed(truth, 3, degrees=4.0).to_dict())
     assert run_job(job_id) == "succeeded"
     job = _record(job_id)
     found = Camera.from_dict(job.result["camera"])

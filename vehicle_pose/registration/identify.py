@@ -65,6 +65,7 @@ def identify(
     options: RegistrationOptions = RegistrationOptions(),
     renderer: Renderer | None = None,
     progress: Callable[[str, int, float], None] | None = None,
+    photo_size: tuple[int, int] | None = None,
 ) -> list[Identification]:
     """Register every model and rank them, best first.
 
@@ -84,7 +85,7 @@ def identify(
 
         try:
             res = register(photo, model, init_camera=init_camera, bbox=bbox, options=options,
-                           renderer=renderer, progress=relay)
+                           renderer=renderer, progress=relay, photo_size=photo_size)
         except PoseError as exc:
             out.append(Identification(model, None, float("inf"), str(exc)))
             continue
@@ -101,16 +102,18 @@ def register_or_identify(
     options: RegistrationOptions = RegistrationOptions(),
     renderer: Renderer | None = None,
     progress: Callable[[str, int, float], None] | None = None,
+    photo_size: tuple[int, int] | None = None,
 ) -> tuple[RegistrationResult, dict[str, Any]]:
     """Register the one model given, or identify the model among several: the winning
     registration and its JSON result (with the ranking under ``identification`` when several
-    models were tried). PoseError when no candidate could be registered."""
+    models were tried). PoseError when no candidate could be registered. ``photo_size`` as
+    for :func:`~vehicle_pose.registration.register.register`."""
     if len(models) == 1:
         result = register(photo, models[0], init_camera=init_camera, bbox=bbox, options=options,
-                          renderer=renderer, progress=progress)
+                          renderer=renderer, progress=progress, photo_size=photo_size)
         return result, result.to_dict()
     ranking = identify(photo, models, init_camera=init_camera, bbox=bbox, options=options,
-                       renderer=renderer, progress=progress)
+                       renderer=renderer, progress=progress, photo_size=photo_size)
     best = ranking[0].result
     if best is None:
         raise PoseError(f"no candidate model could be registered: {ranking[0].error}")

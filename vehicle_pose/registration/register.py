@@ -68,6 +68,7 @@ def register(
     optimizer: Optimizer | None = None,
     progress: Progress | None = None,
     foreground: npt.NDArray[np.bool_] | None = None,
+    photo_size: tuple[int, int] | None = None,
 ) -> RegistrationResult:
     """Find the camera that makes the model coincide with the vehicle in the photo.
 
@@ -94,6 +95,10 @@ def register(
     progress : callable(stage, evaluations, loss), optional, keyword-only
     foreground : (H, W) bool, optional, keyword-only
         The vehicle's pixels, when the caller knows them; replaces GrabCut.
+    photo_size : (W0, H0), optional, keyword-only
+        The photo's own size when ``photo`` is a reduced copy of it (at least the working size,
+        of the same shape within a pixel): the start camera, the box and every camera of the
+        result are the photo's own.
 
     Raises
     ------
@@ -108,9 +113,11 @@ def register(
     """
     t_start = time.perf_counter()
     _check_photo(photo)
-    H0, W0 = photo.shape[:2]
-    if foreground is not None and foreground.shape != (H0, W0):
-        raise ValueError(f"foreground mask is {foreground.shape}, the photo {(H0, W0)}")
+    if foreground is not None and foreground.shape != photo.shape[:2]:
+        raise ValueError(f"foreground mask is {foreground.shape}, the photo {photo.shape[:2]}")
+    W0, H0 = photo_size if photo_size is not None else (photo.shape[1], photo.shape[0])
+    if abs(photo.shape[1] * H0 / W0 - photo.shape[0]) > 1.5:
+        raise ValueError(f"a {photo.shape[1]}x{photo.shape[0]} array is not a reduced {W0}x{H0} photo")
     if init_camera is not None:
         init_camera.for_photo(W0, H0)  # a camera of another picture fails here, not stretched
     renderer = renderer if renderer is not None else Renderer()
