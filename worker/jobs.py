@@ -51,7 +51,7 @@ def thumbnail(rgb: npt.NDArray[np.uint8], width: int = THUMBNAIL_WIDTH) -> bytes
     """A JPEG of ``rgb`` at most ``width`` pixels wide."""
     h, w = rgb.shape[:2]
     if w > width:
-        rgb = cv2.resize(rgb, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+        rgb = resized(rgb, width, max(1, round(h * width / w)))
     return encode_image(rgb, ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
@@ -126,13 +126,11 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     # still answers in the photo's own pixels.
     photo = decode_photo(storage.get(job.photo_key), max_pixels=settings.max_photo_pixels,
                          reduce_to=2 * options.pyramid.max_size)
-    size = (job.photo_width, job.photo_height)
     models = [library.load(model_id) for model_id in library.resolve(job.model_id)]
     init = Camera.from_dict(job.init_camera) if job.init_camera else None
     progress = _Progress(job.id, settings.progress_interval_s)
     result, data = register_or_identify(photo, models, init_camera=init, bbox=job.bbox, options=options,
-                                        progress=progress,
-                                        photo_size=size if size != (photo.shape[1], photo.shape[0]) else None)
+                                        progress=progress, photo_size=(job.photo_width, job.photo_height))
     model = result.model
     base = overlay_base(photo)
     del photo  # a large photo's array need not outlive the registration

@@ -16,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.photo import resized
 
 __all__ = ["Window"]
 
@@ -69,9 +70,7 @@ class Window:
         crop = rgb[self.y0 : self.y1, self.x0 : self.x1]
         if crop.shape[1] == self.width and crop.shape[0] == self.height:
             return crop
-        out: npt.NDArray[np.uint8] = cv2.resize(np.ascontiguousarray(crop), (self.width, self.height),
-                                                interpolation=cv2.INTER_AREA)
-        return out
+        return resized(np.ascontiguousarray(crop), self.width, self.height)
 
     def mask(self, mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
         """The window of a full-size mask, reduced."""

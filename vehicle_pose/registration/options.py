@@ -20,7 +20,7 @@ import math
 import typing
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 from vehicle_pose.registry import LOSSES, OPTIMIZERS, PARAMETRIZATIONS
 
@@ -283,8 +283,6 @@ class RegistrationOptions(_Group):
     budgets: Budgets = field(default_factory=Budgets)
     probes: Probes = field(default_factory=Probes)
     search: Search = field(default_factory=Search)
-
-    GROUPS: ClassVar[Mapping[str, type[Any]]] = _GROUPS
 
     @classmethod
     def specs(cls) -> Iterator[tuple[str, dataclasses.Field[Any], OptionSpec]]:

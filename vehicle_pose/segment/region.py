@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.photo import resized
 from vehicle_pose.segment.grabcut import disk
 
 __all__ = ["VehicleRegion", "find_vehicle", "largest_component"]
@@ -98,7 +99,7 @@ def find_vehicle(
     H, W = rgb.shape[:2]
     s = min(1.0, size / max(W, H))
     w, h = max(16, round(W * s)), max(16, round(H * s))
-    small = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA) if (w, h) != (W, H) else rgb
+    small = resized(rgb, w, h)
     bgr = cv2.cvtColor(np.ascontiguousarray(small), cv2.COLOR_RGB2BGR)
     if rect is None:
         bx, by = max(1, round(border[0] * w)), max(1, round(border[1] * h))
