@@ -9,7 +9,10 @@ objective the search minimises (the named loss plus ``edge_weight`` times the ed
 - the found pose, with the found pose's own GrabCut mask;
 - the annotated rotation, its place, size and focal length refitted (300 simplex evaluations,
   rotation fixed) on the same mask;
-- both again on a mask that GrabCut seeds with the annotated pose's silhouette.
+- both again on a mask that GrabCut seeds with the annotated pose's silhouette;
+- the annotated rotation placed by ``fit_to_box`` on the whole frame (these photos are crops to
+  the car), on the found pose's mask: the loss, the edge term and the silhouette's IoU with the
+  mask, beside the same for the found pose (``frame ...`` columns).
 
 When the annotated rotation scores higher than the found pose on the same mask, the minimum
 is wrong (the search found a better pose by the objective's own measure); when it scores lower,
@@ -38,6 +41,7 @@ from vehicle_pose.photo import load_photo, resized, resized_mask
 from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import NelderMeadRestarts
+from vehicle_pose.search.views import fit_to_box
 from vehicle_pose.segment.grabcut import grabcut_foreground
 
 from common import RESULTS, parse_options, table, write_report
@@ -131,6 +135,14 @@ def main() -> None:
             "focal W annotated": truth.focal / Wf,
         }
         row["minimum wrong"] = row["annotated, own mask"] > row["found, own mask"]
+        framed = fit_to_box(annotated(found, R_gt, model.mesh.sphere[0]), model.mesh.sample_points(600),
+                            model.mesh.sphere[0], (0.0, 0.0, Wf - 1.0, Hf - 1.0), clip=True)
+        for label, cam in (("found", found), ("framed annotated", framed)):
+            frame = renderer.render(mesh, cam)
+            row[f"frame loss, {label}"] = float(on_own.loss(frame))
+            row[f"frame edges, {label}"] = float(on_own.edges(frame)) if on_own.edges is not None else 0.0
+            sil = frame.coverage
+            row[f"frame mask iou, {label}"] = float((sil & own).sum() / max((sil | own).sum(), 1))
         rows.append(row)
         print(" ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
         over = np.concatenate([draw_overlay(work, model.lod(16384), found, renderer=renderer, shade=0.5),

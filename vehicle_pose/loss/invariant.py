@@ -79,14 +79,15 @@ class PhotoTarget:
         return self._cache["gray"]
 
 
-def make_target(rgb: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], *, color: bool) -> PhotoTarget:
+def make_target(rgb: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], *, color: bool,
+                weights: FloatArray | None = None) -> PhotoTarget:
     """Photo attributes in [0, 1] with the background zeroed (n = 3 for colour, else 1)."""
     img = rgb.astype(np.float64) / 255.0
     if not color or is_gray(rgb):
         img = img @ np.array([0.299, 0.587, 0.114])
         img = img[..., None]
     img[~foreground] = 0.0
-    return PhotoTarget(img, np.ones(foreground.shape), foreground)
+    return PhotoTarget(img, np.ones(foreground.shape) if weights is None else weights, foreground)
 
 
 def _inv_sqrt(cov: FloatArray) -> FloatArray:

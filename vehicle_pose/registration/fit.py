@@ -27,7 +27,7 @@ from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized, resized_mask
 from vehicle_pose.registration.options import Pyramid, RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
-from vehicle_pose.registration.segmentation import box_mask, first_foreground, resegment, silhouette
+from vehicle_pose.registration.segmentation import box_mask, doubt_weights, first_foreground, resegment, silhouette
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow
@@ -173,7 +173,9 @@ def fit(
         # Faces hidden from every outside view (the cabin of many CAD cars) are dropped: they
         # never reach a pixel but cost the rasteriser as much as visible ones.
         mesh = model.exterior(face_budget(float(seed.sum()) * (w * h) / (Wf * Hf), options.pyramid), renderer)
-        target = make_target(resized(work, w, h), resized_mask(foreground, w, h), color=options.color)
+        level_fg = resized_mask(foreground, w, h)
+        target = make_target(resized(work, w, h), level_fg, color=options.color,
+                             weights=doubt_weights(level_fg, region, options.segmentation.doubt_weight))
         loss_fn = make_loss(options.loss, target)
         edge_fn = None
         if plan.edge_weight > 0:

@@ -142,7 +142,11 @@ class Segmentation(_Group):
     The first mask is seeded by the start silhouette grown by ``grabcut_margin`` of its diagonal
     (and, with a box, the box grown by ``box_margin``); after each coarse level GrabCut runs
     again (``resegment``), seeded by that level's pose grown by ``resegment_margin``, its shrunk
-    silhouette certain foreground, for ``resegment_iterations`` iterations.
+    silhouette certain foreground, for ``resegment_iterations`` iterations. With a box, the
+    pixels of the grown box that GrabCut calls background count ``doubt_weight`` in the loss
+    (1, as any background, by default: a lower weight helped the real photos, where GrabCut drops
+    the dark lower body, tyres and shadow of a car, and cost the photoreal ones;
+    ``docs/decisions/0006-real-photo-terms.md``).
     """
 
     grabcut: bool = option(True, "remove the background with GrabCut", public=True, flag="--no-grabcut")
@@ -151,6 +155,8 @@ class Segmentation(_Group):
     resegment: bool = option(True, "run GrabCut again after each coarse level", public=True, flag="--no-resegment")
     resegment_margin: float = option(0.08, "seed margin of a resegmentation (silhouette diagonals)", low=0.0, high=1.0)
     resegment_iterations: int = option(2, "GrabCut iterations of a resegmentation", low=1, high=20)
+    doubt_weight: float = option(1.0, "with a box: loss weight of the box's pixels that GrabCut calls background",
+                                 low=0.0, high=1.0)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ import numpy.typing as npt
 
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.photo import resized_mask
 from vehicle_pose.registration.options import Segmentation
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.views import Box
@@ -35,6 +36,26 @@ def box_mask(box: Box, width: int, height: int, margin: float) -> npt.NDArray[np
     mask[max(0, int(y0 - g)) : max(0, int(np.ceil(y1 + g)) + 1),
          max(0, int(x0 - g)) : max(0, int(np.ceil(x1 + g)) + 1)] = True
     return mask
+
+
+def doubt_weights(
+    foreground: npt.NDArray[np.bool_], region: npt.NDArray[np.bool_] | None, weight: float
+) -> npt.NDArray[np.float64] | None:
+    """Loss weights (H, W) at ``foreground``'s size: ``weight`` on the pixels of ``region`` (the
+    client's grown box, at any size) that GrabCut left out, 1 elsewhere; None (unit weights)
+    without a region or at weight 1.
+
+    Within the box, background is GrabCut's guess, and on real photos a poor one: it drops the
+    dark sills, tyres and shadow under a car and the glass that mirrors the sky. Beyond the box
+    it is certain.
+    """
+    if region is None or weight >= 1.0:
+        return None
+    h, w = foreground.shape
+    doubtful = resized_mask(region, w, h) & ~foreground
+    if not doubtful.any():
+        return None
+    return np.where(doubtful, float(weight), 1.0)
 
 
 def first_foreground(
