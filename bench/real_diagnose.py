@@ -36,7 +36,7 @@ from vehicle_pose.geometry.parametrize import ViewParams
 from vehicle_pose.loss.alternatives import make_loss
 from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.loss.invariant import make_target
-from vehicle_pose.metrics import rotation_error
+from vehicle_pose.metrics import iou, rotation_error
 from vehicle_pose.photo import load_photo, resized, resized_mask
 from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.render.renderer import Renderer
@@ -130,7 +130,7 @@ def main() -> None:
             "annotated, own mask": truth_own,
             "found, seeded mask": on_seeded(found),
             "annotated, seeded mask": truth_seeded,
-            "mask iou": float((own & seeded).sum() / max((own | seeded).sum(), 1)),
+            "mask iou": iou(own, seeded),
             "focal W found": found.focal / Wf,
             "focal W annotated": truth.focal / Wf,
         }
@@ -141,8 +141,7 @@ def main() -> None:
             frame = renderer.render(mesh, cam)
             row[f"frame loss, {label}"] = float(on_own.loss(frame))
             row[f"frame edges, {label}"] = float(on_own.edges(frame)) if on_own.edges is not None else 0.0
-            sil = frame.coverage
-            row[f"frame mask iou, {label}"] = float((sil & own).sum() / max((sil | own).sum(), 1))
+            row[f"frame mask iou, {label}"] = iou(frame.coverage, own)
         rows.append(row)
         print(" ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
         over = np.concatenate([draw_overlay(work, model.lod(16384), found, renderer=renderer, shade=0.5),
