@@ -57,7 +57,7 @@ def run_one(model, renderer, photo, truth, start, options, **kw) -> dict:
     pts = model.mesh.vertices
     res = register(photo, model, init_camera=start, options=options, renderer=renderer, **kw)
     return {"error_px": projection_error(pts, res.camera, truth), "start_error_px": projection_error(pts, start, truth),
-            "seconds": res.seconds, "evaluations": res.evaluations, "loss": res.loss,
+            "seconds": res.seconds, "evaluations": res.evaluations, "loss": res.loss, "pose_stage": res.pose_stage,
             "camera": res.camera.to_dict()}
 
 
@@ -104,7 +104,7 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
         r["model"] = model.info.id
         out.append(r)
         print(f"{case.name} {model.info.id:18s} start {r['start_error_px']:7.1f} px -> {r['error_px']:7.2f} px "
-              f"loss {r['loss']:.4f} {r['evaluations']} evals {r['seconds']:.2f} s", flush=True)
+              f"loss {r['loss']:.4f} {r['pose_stage']} {r['evaluations']} evals {r['seconds']:.2f} s", flush=True)
     ids = sorted({r["model"] for r in out})
     rows = [summarise({"start": start_name, "model": mid}, [r for r in out if r["model"] == mid]) for mid in ids]
     rows.append(summarise({"start": start_name, "model": "all"}, out))

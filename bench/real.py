@@ -139,6 +139,7 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
             "box_iou": box_iou(model, res.camera, bbox),
             "focal_widths": res.camera.focal / photo.shape[1],
             "loss": res.loss,
+            "pose_stage": res.pose_stage,
             "confidence": res.confidence,
             "failed": res.failed,
             "seconds": res.seconds,
@@ -149,7 +150,8 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         runs.append(r)
         start_txt = f"{r['start_deg']:.1f}" if r["start_deg"] is not None else f"({r['search_start_deg']:.1f})"
         print(f"{case.name} {photo.shape[1]:5d}x{photo.shape[0]:<4d} start {start_txt:>6s} deg -> "
-              f"{r['final_deg']:6.1f} deg  box {r['box_iou']:.2f}  f {r['focal_widths']:.2f} W  loss {r['loss']:.4f}  "
+              f"{r['final_deg']:6.1f} deg  box {r['box_iou']:.2f}  f {r['focal_widths']:.2f} W  "
+              f"loss {r['loss']:.4f} {r['pose_stage']}  "
               f"conf {'-' if r['confidence'] is None else format(r['confidence'], '.2f')} "
               f"{'FLAGGED ' if r['failed'] else ''}{r['seconds']:.1f} s", flush=True)
         left = draw_overlay(photo, model.lod(16384), start_cam, renderer=renderer, wheels=model.wheels)

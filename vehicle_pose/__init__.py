@@ -34,6 +34,7 @@ _WHERE = {
     "Pyramid": "registration.options",
     "Segmentation": "registration.options",
     "Terms": "registration.options",
+    "Structure": "registration.options",
     "Budgets": "registration.options",
     "Probes": "registration.options",
     "Search": "registration.options",
@@ -72,6 +73,7 @@ if TYPE_CHECKING:
         RegistrationOptions,
         Search,
         Segmentation,
+        Structure,
         Terms,
     )
     from vehicle_pose.registration.register import register
@@ -116,6 +118,7 @@ __all__ = [
     "RenderError",
     "Search",
     "Segmentation",
+    "Structure",
     "Terms",
     "Theta",
     "UnknownModelError",

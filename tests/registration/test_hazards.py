@@ -31,7 +31,7 @@ def _truth(sedan, hazard: str, azimuth: float) -> Camera:
 
 @pytest.mark.parametrize("hazard,azimuth,seed", [
     ("mirror-floor", 40.0, 0), ("sky-on-glass", 95.0, 1), ("second-car", 140.0, 2),
-    ("border-crop", 230.0, 3), ("specular", 300.0, 4),
+    ("border-crop", 230.0, 3), ("specular", 300.0, 4), ("mirror-paint", 20.0, 5),
 ])
 def test_registered_within_a_few_pixels(sedan, renderer, hazard, azimuth, seed):
     assert hazard in HAZARDS

@@ -1,6 +1,6 @@
 """The optimisers: the simplex with restarts minimises, keeps to its budget, and its restarts follow
 the last run; CMA-ES walks a narrow valley, keeps to its budget, repeats itself and leaves NumPy's
-global generator as it found it."""
+global generator as it found it; the cross-entropy method returns the middle of a pitted floor."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from vehicle_pose.registry import OPTIMIZERS
 from vehicle_pose.search.optimize import (
     CMAES,
     Counted,
+    CrossEntropy,
     NelderMeadRestarts,
     basis_along,
 )
@@ -140,3 +141,34 @@ def test_cma_es_repeats_itself_and_restores_the_global_generator():
     np.testing.assert_array_equal(a.x, b.x)
     c = CMAES(seed=2)(rotated_valley, np.zeros(7), np.full(7, 0.3), max_evaluations=300)
     assert not np.array_equal(a.x, c.x)
+
+
+def pitted(x: np.ndarray) -> float:
+    """A broad bowl about 0.5 with a grid of narrow pits 0.1 apart, one of them, at -0.1 off
+    the bowl's floor, lower than the pit at the bowl's centre."""
+    bowl = float(np.sum((x - 0.5) ** 2))
+    pits = -0.05 * float(np.prod(np.cos(np.pi * (x - 0.5) / 0.05) ** 20))
+    return bowl + pits
+
+
+def test_cross_entropy_returns_the_middle_of_a_pitted_floor():
+    res = CrossEntropy(population=100, elite=10)(pitted, np.zeros(3), np.full(3, 0.5), max_evaluations=801)
+    np.testing.assert_allclose(res.x, 0.5, atol=0.05)
+    assert res.fun == pytest.approx(pitted(res.x))
+    assert res.evaluations == 801
+
+
+def test_cross_entropy_keeps_to_its_budget_repeats_itself_and_checks_its_elite():
+    calls = []
+
+    def counted(x: np.ndarray) -> float:
+        calls.append(np.array(x))
+        return float(np.sum(x**2))
+
+    first = CrossEntropy(population=20, elite=4, seed=3)(counted, np.ones(2), np.ones(2), max_evaluations=70)
+    assert first.evaluations == len(calls) == 61  # three generations of 20 and their mean
+    np.testing.assert_array_equal(calls[0], np.ones(2))  # the start is the first sample
+    again = CrossEntropy(population=20, elite=4, seed=3)(counted, np.ones(2), np.ones(2), max_evaluations=70)
+    np.testing.assert_array_equal(first.x, again.x)
+    with pytest.raises(ValueError, match="elite"):
+        CrossEntropy(population=10, elite=11)

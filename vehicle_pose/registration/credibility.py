@@ -14,7 +14,7 @@ from vehicle_pose.registration.segmentation import silhouette
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.segment.region import VehicleRegion
 
-__all__ = ["confidence", "fit_checks"]
+__all__ = ["confidence", "fit_checks", "loss_share"]
 
 
 def confidence(checks: dict[str, float]) -> float:
@@ -36,6 +36,11 @@ def confidence(checks: dict[str, float]) -> float:
     return float(np.clip(min(fit, unique, region), 0.0, 1.0))
 
 
+def loss_share(loss: float, work: npt.NDArray[np.uint8], color: bool) -> float:
+    """A loss over the loss's maximum: 3 for a colour loss on a colour photo, else 1."""
+    return loss / (3.0 if color and not is_gray(work) else 1.0)
+
+
 def fit_checks(
     work: npt.NDArray[np.uint8],
     model: VehicleModel,
@@ -50,5 +55,5 @@ def fit_checks(
     final = silhouette(model, fitted.camera, renderer)
     checks = {} if region is None else {"region_iou": iou(final, region.mask)}
     checks["foreground_iou"] = iou(final, fitted.foreground)
-    checks["loss"] = fitted.loss / (3.0 if color and not is_gray(work) else 1.0)
+    checks["loss"] = loss_share(fitted.loss, work, color)
     return checks

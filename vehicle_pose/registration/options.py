@@ -25,7 +25,7 @@ from typing import Any
 from vehicle_pose.registry import LOSSES, OPTIMIZERS, PARAMETRIZATIONS
 
 __all__ = [
-    "RegistrationOptions", "Pyramid", "Segmentation", "Terms", "Budgets", "Probes", "Search",
+    "RegistrationOptions", "Pyramid", "Segmentation", "Terms", "Structure", "Budgets", "Probes", "Search",
     "OptionSpec", "option", "WINDOW_MARGIN", "SIDES",
 ]
 
@@ -187,6 +187,37 @@ class Terms(_Group):
 
 
 @dataclass(frozen=True)
+class Structure(_Group):
+    """The structure's pose, with a start camera and a box (``docs/decisions/0012-structure-first.md``).
+
+    When the shading fit's loss over its maximum is above ``shading_trust`` (the shading model
+    does not explain the photo: real paint and glass mirror their surroundings), the pose is
+    found on the photo's edges instead, from the client's start: the rotation and focal length
+    are searched on the directional chamfer (truncated at ``anchor_tau`` of the diagonal) with
+    the place and size fitted to the box, at ``structure_size`` pixels, by the cross-entropy
+    method (``anchor_population`` samples a generation, the first spread by ``structure_spread``
+    degrees, ``anchor_evaluations`` in all); then all coordinates on the chamfer (truncated at
+    ``structure_tau``) and the box term (``structure_evaluations``).
+    """
+
+    structure: bool = option(True, "with a start camera and a box: find the pose on the photo's edges and the box "
+                             "where the shading fit is not credible", public=True, flag="--no-structure")
+    structure_size: int = option(320, "longer side of the photo for the structure stages (pixels)", low=16)
+    structure_spread: float = option(10.0, "spread of the anchored search's first samples (degrees)", low=0.0,
+                                     high=45.0)
+    anchor_tau: float = option(0.05, "chamfer truncation of the anchored search (photo diagonals)", low=1e-3,
+                               high=1.0)
+    structure_tau: float = option(0.03, "chamfer truncation of the free structure refinement (photo diagonals)",
+                                  low=1e-3, high=1.0)
+    anchor_population: int = option(100, "samples per generation of the anchored search", low=10, high=1000)
+    anchor_evaluations: int = option(601, "evaluations of the anchored search (whole generations, and their mean)",
+                                     low=11)
+    structure_evaluations: int = option(300, "evaluations of the free structure refinement", low=0)
+    shading_trust: float = option(0.15, "loss over its maximum up to which the shading fit is credible",
+                                  low=0.0, high=1.0)
+
+
+@dataclass(frozen=True)
 class Budgets(_Group):
     """Loss evaluations per search (``docs/decisions/0001-coarse-to-fine.md``).
 
@@ -257,8 +288,8 @@ class Search(_Group):
 
 
 _GROUPS: dict[str, type[Any]] = {
-    "pyramid": Pyramid, "segmentation": Segmentation, "terms": Terms, "budgets": Budgets, "probes": Probes,
-    "search": Search,
+    "pyramid": Pyramid, "segmentation": Segmentation, "terms": Terms, "structure": Structure, "budgets": Budgets,
+    "probes": Probes, "search": Search,
 }
 
 
@@ -286,6 +317,7 @@ class RegistrationOptions(_Group):
     pyramid: Pyramid = field(default_factory=Pyramid)
     segmentation: Segmentation = field(default_factory=Segmentation)
     terms: Terms = field(default_factory=Terms)
+    structure: Structure = field(default_factory=Structure)
     budgets: Budgets = field(default_factory=Budgets)
     probes: Probes = field(default_factory=Probes)
     search: Search = field(default_factory=Search)

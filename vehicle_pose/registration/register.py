@@ -18,11 +18,12 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.pose import camera_to_theta, visible_side
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized, resized_mask
-from vehicle_pose.registration.credibility import confidence, fit_checks
+from vehicle_pose.registration.credibility import confidence, fit_checks, loss_share
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
+from vehicle_pose.registration.structure import find_structure, structure_fit
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, make_optimizer
 from vehicle_pose.search.views import Box, fit_to_box, parse_bbox
@@ -138,7 +139,17 @@ def register(
         timings["start"] = 0.0
         start = _given_start(work, model, init_camera, rect, options)
         found = fit(work, model, start, options, FitPlan.hinted(options), renderer, optimizer, progress, fg, box=rect)
-        levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
+        spent, grabcut_seconds, stage = [found], found.grabcut_seconds, "shading"
+        if (rect is not None and options.structure.structure
+                and loss_share(found.loss, work, options.color) > options.structure.shading_trust):
+            # The shading does not explain the photo (real paint and glass mirror their
+            # surroundings): the pose is found on the photo's edges and the box instead
+            # (docs/decisions/0012-structure-first.md).
+            structure = find_structure(work, model, start, rect, options, renderer, optimizer, progress)
+            timings["structure"] = structure.seconds
+            found, stage = structure_fit(work, model, structure, found, options, renderer), "structure"
+            spent.append(found)
+        levels = found.levels
         checks = fit_checks(work, model, found, None, options.color, renderer)
     else:
         source = "bbox" if bbox is not None else "none"
@@ -150,15 +161,16 @@ def register(
         start, method = searched.candidate.camera, searched.candidate.source
         spent, grabcut_seconds = searched.spent, searched.grabcut_seconds
         timings.update(searched.timings)
+        stage = "shading"
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
-                   W0, H0, time.perf_counter() - t_start)
+                   W0, H0, time.perf_counter() - t_start, stage)
 
 
 def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: VehicleModel,
             options: RegistrationOptions, source: str, method: str, start: Camera, checks: dict[str, float],
             listed: list[dict[str, Any]], timings: dict[str, float], W0: int, H0: int,
-            seconds: float) -> RegistrationResult:
+            seconds: float, stage: str) -> RegistrationResult:
     """The result at the photo's own size."""
     final = found.camera.scaled(W0, H0)
     side = visible_side(final, model.wheels.side("left"))
@@ -183,4 +195,5 @@ def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: Vehi
         failed=conf is not None and conf < options.search.min_confidence,
         checks=checks,
         candidates=listed,
+        pose_stage=stage,
     )

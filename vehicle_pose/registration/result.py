@@ -45,7 +45,10 @@ class RegistrationResult:
     silhouette against the final GrabCut mask, and ``loss``, the final loss over its maximum;
     ``passes`` is 2 when a second search ran);
     ``candidates`` lists the screened starts. ``evaluations`` and ``restarts`` count every
-    search run, screening included; ``levels`` are the winning pose's levels.
+    search run, screening included; ``levels`` are the winning pose's levels. ``pose_stage``
+    says which stage's pose is the result: ``shading`` (the loss's fit) or ``structure`` (edges
+    and box, kept where the loss does not explain the photo;
+    ``docs/decisions/0012-structure-first.md``).
     """
 
     camera: Camera
@@ -66,6 +69,7 @@ class RegistrationResult:
     failed: bool = False
     checks: dict[str, float] = field(default_factory=dict)
     candidates: list[dict[str, Any]] = field(default_factory=list)
+    pose_stage: str = "shading"
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON result: camera, theta, BOP-style fields, loss, counts, timings."""
@@ -86,6 +90,7 @@ class RegistrationResult:
                 "wheels": self.model.wheels.to_dict(),
                 "estimated": list(info.estimated),
             },
+            "pose_stage": self.pose_stage,
             "confidence": self.confidence,
             "failed": self.failed,
             "checks": self.checks,

@@ -90,7 +90,7 @@ def synthesize(
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), mask
 
 
-HAZARDS: tuple[str, ...] = ("mirror-floor", "sky-on-glass", "second-car", "border-crop", "specular")
+HAZARDS: tuple[str, ...] = ("mirror-floor", "sky-on-glass", "second-car", "border-crop", "specular", "mirror-paint")
 """What real photos have and :func:`synthesize` lacks, one at a time (:func:`synthesize_hazard`)."""
 
 
@@ -114,7 +114,11 @@ def synthesize_hazard(
     - ``border-crop``: the image moved sideways so that the photo's right border cuts 15 %
       of the vehicle's width (:func:`border_crop_camera`; the true camera returned is the
       moved one);
-    - ``specular``: a sharp white highlight of the light on the paint, saturated.
+    - ``specular``: a sharp white highlight of the light on the paint, saturated;
+    - ``mirror-paint``: every panel and window a mirror of a random surrounding (a smooth random
+      environment looked up by the reflected viewing ray) over a weak diffuse shading, as
+      glossy paint shows the sky, buildings and ground around a real car. No lighting of the
+      model's normals explains it: the invariant loss is far from credible.
     """
     if hazard not in HAZARDS:
         raise ValueError(f"unknown hazard {hazard!r}; choose one of {', '.join(HAZARDS)}")
@@ -170,6 +174,28 @@ def synthesize_hazard(
         spec = np.clip(n @ half, 0.0, 1.0) ** 16
         body = frame.full(frame.labels == KINDS.index("body") + 1)
         img[body] += 1.5 * spec[body][:, None]
+    elif hazard == "mirror-paint":
+        frame = r.render(mesh, camera)
+        attrs = frame.full(np.where(frame.labels[..., None] > 0, frame.attrs, 0.0)).astype(np.float64)
+        n = attrs[..., 1:] / np.maximum(np.linalg.norm(attrs[..., 1:], axis=-1, keepdims=True), 1e-9)
+        # Each pixel's viewing ray reflected about the normal; its direction picks the
+        # environment's texel: a bright sky above a horizon (image y points down), buildings
+        # standing on it, dark ground below, as a street around a car. A flat panel mirrors a
+        # piece of that scene, not one colour.
+        ys, xs = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
+        ray = np.stack([(xs - camera.K[0, 2]) / camera.K[0, 0], (ys - camera.K[1, 2]) / camera.K[1, 1],
+                        np.ones_like(xs)], axis=-1)
+        ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+        reflected = ray - 2.0 * np.sum(n * ray, axis=-1, keepdims=True) * n
+        size = 128
+        rows = np.linspace(-1.0, 1.0, size)[:, None]
+        horizon = 0.1 * (_smooth_texture(1, size, rng, 4)[0] - 0.5)
+        skyline = horizon - 0.5 * (_smooth_texture(1, size, rng, 24)[0] > 0.55)
+        env = np.where(rows < skyline, 0.85 - 0.2 * (rows + 1.0), 0.35)
+        env = np.where(rows > horizon, 0.08 + 0.1 * _smooth_texture(size, size, rng, 16), env)
+        u = np.clip(((reflected[..., 0] + 1.0) * 0.5 * (size - 1)).round().astype(int), 0, size - 1)
+        v = np.clip(((reflected[..., 1] + 1.0) * 0.5 * (size - 1)).round().astype(int), 0, size - 1)
+        img[mask] = 0.2 * img[mask] + 0.9 * env[v[mask], u[mask]][:, None]
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), mask, camera
 
 

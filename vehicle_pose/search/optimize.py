@@ -31,7 +31,8 @@ def _cma() -> Any:
 
 
 __all__ = [
-    "OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "Counted", "basis_along", "make_optimizer",
+    "OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "CrossEntropy", "Counted", "basis_along",
+    "make_optimizer",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -266,6 +267,53 @@ class CMAES:
         finally:
             np.random.set_state(state)
         return counted.result()
+
+
+@dataclass(frozen=True)
+class CrossEntropy:
+    """The cross-entropy method: each generation samples ``population`` points from a Gaussian
+    and refits its mean and spread to the ``elite`` best; the result is the final mean.
+
+    The mean of the best rather than the best point: where a cost's minimum is a broad floor
+    pitted with local minima of about the same depth (an edge chamfer on a real photo, where
+    every reflection makes an edge), the lowest sample is one pit chosen by chance, and the
+    elite's mean lies near the middle of the floor (docs/decisions/0012-structure-first.md).
+
+    Parameters
+    ----------
+    population : int
+        Samples per generation; the first generation's first sample is ``x0`` itself.
+    elite : int
+        The best samples the next generation is fitted to.
+    sigma : float
+        The first generation's standard deviation, in units of ``steps``.
+    seed : int
+        Seed of the sampling: the same call gives the same result.
+    """
+
+    population: int = 100
+    elite: int = 10
+    sigma: float = 1.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.elite <= self.population:
+            raise ValueError(f"elite must be in [1, population={self.population}], not {self.elite}")
+
+    def __call__(self, fun: Objective, x0: FloatArray, steps: FloatArray, *, max_evaluations: int) -> OptimizeResult:
+        counted = Counted(fun)
+        rng = np.random.default_rng(self.seed)
+        mean = np.asarray(x0, dtype=np.float64).copy()
+        spread = self.sigma * np.asarray(steps, dtype=np.float64)
+        generations = max(1, (max_evaluations - 1) // self.population)
+        for g in range(generations):
+            xs = mean + rng.standard_normal((self.population, mean.size)) * spread
+            if g == 0:
+                xs[0] = mean
+            values = np.array([counted(x) for x in xs])
+            best = xs[np.argsort(values, kind="stable")[: self.elite]]
+            mean, spread = best.mean(axis=0), best.std(axis=0)
+        return OptimizeResult(mean, counted(mean), counted.count, generations - 1)
 
 
 OPTIMIZERS.register("nelder-mead")(NelderMeadRestarts)

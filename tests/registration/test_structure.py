@@ -1,0 +1,105 @@
+"""The structure's pose: the anchored search on the photo's edges and the box, and when it is kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vehicle_pose import RegistrationOptions, register
+from vehicle_pose.errors import PoseError
+from vehicle_pose.metrics import rotation_error
+from vehicle_pose.registration.structure import BoxAnchoredParams, find_structure
+from vehicle_pose.render.synth import synthesize, synthesize_hazard
+from vehicle_pose.search.optimize import NelderMeadRestarts
+
+from helpers import perturbed, projection_error, view
+
+
+def _box(mask: np.ndarray) -> tuple[float, float, float, float]:
+    ys, xs = np.nonzero(mask)
+    return float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)
+
+
+def _centre_and_size(model, camera) -> np.ndarray:
+    """The centre (x, y) and geometric mean size of the model's projected box."""
+    uv = camera.project(model.mesh.sample_points(1000))
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    return np.array([*(0.5 * (lo + hi)), np.sqrt(np.prod(hi - lo))])
+
+
+def test_anchored_coordinates_keep_the_model_in_the_box(sedan):
+    truth = view(sedan, 35.0, 12.0, width=320, height=240, focal=450.0)
+    box = (60.0, 70.0, 250.0, 180.0)
+    fills = np.array([155.0, 125.0, np.sqrt(190.0 * 110.0)])  # the box's centre and size
+    params = BoxAnchoredParams(truth, box, sedan.mesh.sample_points(1000), sedan.mesh.sphere[0])
+    at_start = params.camera(params.start())
+    np.testing.assert_allclose(at_start.R, truth.R, atol=1e-12)
+    assert at_start.focal == pytest.approx(truth.focal)
+    np.testing.assert_allclose(_centre_and_size(sedan, at_start), fills, atol=1.0)
+    # Turned by 10 degrees about the image's vertical axis, with twice the focal length: the
+    # rotation and the focal length change, the model still fills the box.
+    x = np.array([0.0, np.radians(10.0), 0.0, np.log(2.0)])
+    turned = params.camera(x)
+    assert rotation_error(turned.R, truth.R) == pytest.approx(10.0, abs=1e-6)
+    assert turned.focal == pytest.approx(2.0 * truth.focal)
+    np.testing.assert_allclose(_centre_and_size(sedan, turned), fills, atol=1.0)
+    with pytest.raises(PoseError):
+        params.camera(np.array([0.0, 0.0, 0.0, 9.0]))
+
+
+@pytest.mark.slow
+def test_the_anchored_search_turns_a_rough_start_towards_the_truth(sedan, renderer):
+    truth = view(sedan, 60.0, 14.0, width=320, height=240, focal=450.0)
+    photo, mask = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)
+    start = perturbed(truth, 3, degrees=10.0, shift=0.0, focal=0.0)
+    options = RegistrationOptions.from_flat(structure_evaluations=0)
+    found = find_structure(photo, sedan, start, _box(mask), options, renderer, NelderMeadRestarts())
+    assert rotation_error(found.camera.R, truth.R) < 3.0
+    assert [level.width for level in found.levels] == [320, 320]
+    assert found.levels[0].evaluations == options.structure.anchor_evaluations
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("hazard,azimuth,seed", [("mirror-floor", 40.0, 0), ("second-car", 140.0, 2),
+                                                 ("border-crop", 230.0, 3)])
+def test_the_structures_pose_registers_a_hazard_within_a_few_pixels(sedan, renderer, hazard, azimuth, seed):
+    truth = view(sedan, azimuth, 14.0, width=320, height=240, focal=450.0)
+    photo, mask, truth = synthesize_hazard(sedan.mesh, truth, hazard, renderer=renderer, seed=seed)
+    start = perturbed(truth, seed, degrees=10.0)
+    assert projection_error(sedan, start, truth) > 8.0
+    # A shading trust of 0 takes the structure's pose whatever the loss.
+    result = register(photo, sedan, init_camera=start, bbox=_box(mask), renderer=renderer,
+                      options=RegistrationOptions.from_flat(shading_trust=0.0))
+    assert result.pose_stage == "structure"
+    assert projection_error(sedan, result.camera, truth) < 3.0
+    assert rotation_error(result.camera.R, truth.R) < 3.0
+    data = result.to_dict()
+    assert data["pose_stage"] == "structure" and "structure" in data["timings"]
+    # The structure's two levels report the named loss on the final mask, and every
+    # evaluation (the shading fit's too) is counted.
+    assert len(data["levels"]) == 2 and all(0.0 <= level["loss"] <= 1.0 for level in data["levels"])
+    assert result.evaluations > sum(level["evaluations"] for level in data["levels"])
+
+
+@pytest.mark.slow
+def test_a_credible_shading_fit_is_kept_and_the_structure_not_searched(sedan, renderer):
+    truth = view(sedan, 300.0, 14.0, width=320, height=240, focal=450.0)
+    photo, mask = synthesize(sedan.mesh, truth, renderer=renderer, seed=4)
+    start = perturbed(truth, 4, degrees=8.0)
+    result = register(photo, sedan, init_camera=start, bbox=_box(mask), renderer=renderer)
+    assert result.loss < 0.15
+    assert result.pose_stage == "shading" and "structure" not in result.timings
+    assert projection_error(sedan, result.camera, truth) < 1.0
+    without = register(photo, sedan, init_camera=start, bbox=_box(mask), renderer=renderer,
+                       options=RegistrationOptions.from_flat(structure=False))
+    np.testing.assert_array_equal(without.camera.R, result.camera.R)
+    np.testing.assert_array_equal(without.camera.t, result.camera.t)
+
+
+def test_without_a_box_there_is_no_structure_stage(sedan, renderer):
+    truth = view(sedan, 300.0, 14.0, width=160, height=120, focal=225.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=5)
+    result = register(photo, sedan, init_camera=perturbed(truth, 5, degrees=4.0), renderer=renderer,
+                      options=RegistrationOptions.from_flat(shading_trust=0.0, max_evaluations=40,
+                                                            fine_evaluations=20, focal_starts=()))
+    assert result.pose_stage == "shading" and "structure" not in result.timings

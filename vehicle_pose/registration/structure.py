@@ -1,0 +1,218 @@
+"""The structure's pose: with a start camera and the vehicle's box, where the shading fit's loss
+does not explain the photo, the pose is found on the photo's edges and the box instead
+(``docs/decisions/0012-structure-first.md``).
+
+On real photos the invariant loss explains little of a car (sky and buildings mirrored in the
+paint and the glass), and the loss with a GrabCut mask pulls the model onto the bright panels,
+shrunk inside the car. What stays put on a real photo is its structure: the outline, the
+window frames, the lights and the wheel arches, and the box the client drew. So:
+
+1. **Anchored search**: the rotation and the focal length are searched with the place and the
+   size tied to the box (each camera moved and scaled until the model's projection, cut to the
+   photo, fills the box: :func:`~vehicle_pose.search.views.fit_to_box`), scoring the directional
+   chamfer of the model's edges against the photo's (:class:`~vehicle_pose.loss.edges.EdgeLoss`).
+   Four coordinates instead of seven, and none of them can shrink the model onto a panel.
+   The chamfer of a real photo has a broad floor about the true rotation, pitted with local
+   minima a few degrees apart (every reflection makes an edge), so the search is the
+   cross-entropy method (:class:`~vehicle_pose.search.optimize.CrossEntropy`), which returns
+   the mean of the best samples rather than one pit.
+2. **Free refinement**: all seven view coordinates, on the chamfer plus the box term
+   (:func:`~vehicle_pose.search.views.box_overflow`), so that a loose or tight box does not fix
+   the size.
+
+Both run from the client's start (refitted to the box), not from the shading fit's pose, which
+on a real photo has already shrunk onto a panel. Where the loss does explain the photo (its
+value over its maximum at most ``shading_trust``, the threshold at which the no-hint search's
+confidence calls a fit credible), the shading fit stays the result: it is the more precise.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from functools import cached_property
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.errors import CameraError, PoseError
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.geometry.parametrize import ViewParams
+from vehicle_pose.loss.alternatives import make_loss
+from vehicle_pose.loss.edges import EdgeLoss
+from vehicle_pose.loss.invariant import make_target
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.model.mesh import Mesh
+from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.registration.fit import Fit, Progress, face_budget
+from vehicle_pose.registration.options import RegistrationOptions
+from vehicle_pose.registration.result import LevelReport
+from vehicle_pose.registration.segmentation import silhouette
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.search.optimize import CrossEntropy, Optimizer, OptimizeResult
+from vehicle_pose.search.views import Box, box_overflow, fit_to_box
+
+__all__ = ["BoxAnchoredParams", "Structure", "find_structure", "structure_fit", "loss_at"]
+
+FloatArray = npt.NDArray[np.float64]
+
+_INVALID = 10.0  # the objective of coordinates that give no camera
+_POINTS = 1000  # surface points whose projection is fitted to the box
+
+
+@dataclass(frozen=True)
+class BoxAnchoredParams:
+    """Rotation vector and log focal length about a reference, the place and size fitted to a box.
+
+    ``x = (r, g)``: the reference's rotation turned by the rotation vector ``r`` (radians, in
+    camera coordinates), its focal length times ``exp(g)``; the camera is then moved along and
+    across its axis until ``points`` project, cut to the image, onto ``box``.
+    """
+
+    reference: Camera
+    box: Box
+    points: FloatArray
+    centre: FloatArray
+
+    def start(self) -> FloatArray:
+        return np.zeros(4)
+
+    def steps(self) -> FloatArray:
+        return np.array([0.08, 0.08, 0.08, 0.3])
+
+    @cached_property
+    def _depth(self) -> float:
+        """The reference's depth of the model centre (mesh units), kept as the fit's first guess."""
+        return float(self.reference.to_camera(self.centre[None])[0, 2])
+
+    def camera(self, x: FloatArray) -> Camera:
+        ref = self.reference
+        if not np.all(np.isfinite(x)) or abs(float(x[3])) > 5.0:
+            raise PoseError("focal length out of range")
+        K = ref.K.copy()
+        K[0, 0] *= float(np.exp(x[3]))
+        K[1, 1] *= float(np.exp(x[3]))
+        R = cv2.Rodrigues(np.asarray(x[:3], dtype=np.float64))[0] @ ref.R
+        depth = max(self._depth, 1e-6) * float(np.exp(x[3]))
+        turned = Camera(K, R, np.array([0.0, 0.0, depth]) - R @ self.centre, ref.width, ref.height)
+        return fit_to_box(turned, self.points, self.centre, self.box, rounds=4, clip=True)
+
+
+@dataclass
+class Structure:
+    """The structure stages' pose (at working size), each stage's report and pose."""
+
+    camera: Camera
+    levels: list[LevelReport]
+    cameras: list[Camera]
+    seconds: float
+
+
+def _search(optimizer: Optimizer, objective: _Objective, params: BoxAnchoredParams | ViewParams, x0: FloatArray,
+            steps: FloatArray, budget: int) -> OptimizeResult:
+    def fun(x: FloatArray) -> float:
+        try:
+            cam = params.camera(x)
+        except (PoseError, CameraError):
+            return _INVALID
+        return objective(cam)
+
+    return optimizer(fun, x0, steps, max_evaluations=budget)
+
+
+class _Objective:
+    """The chamfer of the model's edges against the photo's, plus ``box_weight`` times the box term."""
+
+    def __init__(self, image: npt.NDArray[np.uint8], mesh: Mesh, renderer: Renderer, tau: float,
+                 crease: float, box: Box | None, box_points: FloatArray, options: RegistrationOptions,
+                 progress: Progress | None, stage: str) -> None:
+        self.edges = EdgeLoss(image, tau=tau, crease=crease)
+        self.mesh, self.renderer, self.box, self.box_points = mesh, renderer, box, box_points
+        self.terms = options.terms
+        self.progress, self.stage, self.count = progress, stage, 0
+
+    def __call__(self, cam: Camera) -> float:
+        value = self.edges(self.renderer.render(self.mesh, cam))
+        if self.box is not None and self.terms.box_weight > 0:
+            value += self.terms.box_weight * box_overflow(cam, self.box_points, self.box, self.terms.box_tolerance,
+                                                          self.terms.box_shortfall)
+        self.count += 1
+        if self.progress is not None and self.count % 20 == 0:
+            self.progress(self.stage, self.count, value)
+        return value
+
+
+def find_structure(
+    work: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    start: Camera,
+    box: Box,
+    options: RegistrationOptions,
+    renderer: Renderer,
+    optimizer: Optimizer,
+    progress: Progress | None = None,
+) -> Structure:
+    """The pose found on the photo's edges and the box (both stages of the module docstring).
+
+    ``work`` is the working photo, ``start`` a camera for it, ``box`` the vehicle's box in its
+    pixels. Runs at ``structure_size`` pixels (never enlarged).
+    """
+    t0 = time.perf_counter()
+    st = options.structure
+    Hf, Wf = work.shape[:2]
+    s = min(1.0, st.structure_size / max(Wf, Hf))
+    w, h = max(8, round(Wf * s)), max(8, round(Hf * s))
+    image = resized(work, w, h)
+    level_box: Box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
+    ref = start.scaled(w, h)
+    points = model.mesh.sample_points(_POINTS)
+    centre = model.mesh.sphere[0]
+    mesh = model.exterior(options.pyramid.min_faces, renderer)
+
+    anchored = BoxAnchoredParams(ref, level_box, points, centre)
+    objective = _Objective(image, mesh, renderer, st.anchor_tau, options.terms.edge_crease, None, points, options,
+                           progress, f"structure anchored ({w}x{h})")
+    # The first generation's spread: the start's rotation error (5-15 degrees for a rough
+    # start) about the image's horizontal and vertical axes, half that about the optical axis
+    # (photos are mostly level), and a factor of two either way in focal length.
+    spread = np.radians(st.structure_spread)
+    sampler = CrossEntropy(population=st.anchor_population, elite=max(1, st.anchor_population // 10))
+    found = _search(sampler, objective, anchored, anchored.start(), np.array([spread, spread, 0.5 * spread, 0.7]),
+                    st.anchor_evaluations)
+    camera = anchored.camera(found.x)
+    anchored_camera = camera
+    t1 = time.perf_counter()
+    levels = [LevelReport(w, h, mesh.n_faces, found.evaluations, found.restarts, float("nan"), t1 - t0, found.fun)]
+
+    free = ViewParams(camera, centre, options.probes.dolly_pivot * model.mesh.sphere[1])
+    refine = _Objective(image, mesh, renderer, st.structure_tau, options.terms.edge_crease, level_box, points, options,
+                        progress, f"structure refined ({w}x{h})")
+    res = _search(optimizer, refine, free, free.start(), 0.3 * free.steps(), st.structure_evaluations)
+    if res.fun < refine(camera):
+        camera = free.camera(res.x)
+    levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, float("nan"),
+                              time.perf_counter() - t1, res.fun))
+    return Structure(camera.scaled(Wf, Hf), levels, [anchored_camera.scaled(Wf, Hf), camera.scaled(Wf, Hf)],
+                     time.perf_counter() - t0)
+
+
+def loss_at(work: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], camera: Camera, model: VehicleModel,
+            options: RegistrationOptions, renderer: Renderer, width: int, height: int) -> float:
+    """The named loss of ``camera`` (any size) on ``work`` and ``foreground`` reduced to ``width`` x ``height``."""
+    target = make_target(resized(work, width, height), resized_mask(foreground, width, height), color=options.color)
+    cam = camera.scaled(width, height)
+    mesh = model.exterior(face_budget(float(max(silhouette(model, cam, renderer).sum(), 1)), options.pyramid),
+                          renderer)
+    return float(make_loss(options.loss, target)(renderer.render(mesh, cam)))
+
+
+def structure_fit(work: npt.NDArray[np.uint8], model: VehicleModel, structure: Structure, shaded: Fit,
+                  options: RegistrationOptions, renderer: Renderer) -> Fit:
+    """The structure's pose as a :class:`~vehicle_pose.registration.fit.Fit`, its levels' ``loss``
+    the named loss of their pose on the shading fit's final mask at their own size (so that every
+    registration reports the same measure), with that mask and the shading fit's GrabCut time."""
+    reports = [replace(level, loss=loss_at(work, shaded.foreground, cam, model, options, renderer, level.width,
+                                           level.height))
+               for level, cam in zip(structure.levels, structure.cameras, strict=True)]
+    return Fit(structure.camera, reports, shaded.foreground, 0.0)
