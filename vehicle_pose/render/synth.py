@@ -188,11 +188,11 @@ def synthesize_hazard(
         ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
         reflected = ray - 2.0 * np.sum(n * ray, axis=-1, keepdims=True) * n
         size = 128
-        rows = np.linspace(-1.0, 1.0, size)[:, None]
+        up_down = np.linspace(-1.0, 1.0, size)[:, None]  # the reflected ray's y, texel row by row
         horizon = 0.1 * (_smooth_texture(1, size, rng, 4)[0] - 0.5)
         skyline = horizon - 0.5 * (_smooth_texture(1, size, rng, 24)[0] > 0.55)
-        env = np.where(rows < skyline, 0.85 - 0.2 * (rows + 1.0), 0.35)
-        env = np.where(rows > horizon, 0.08 + 0.1 * _smooth_texture(size, size, rng, 16), env)
+        env = np.where(up_down < skyline, 0.85 - 0.2 * (up_down + 1.0), 0.35)
+        env = np.where(up_down > horizon, 0.08 + 0.1 * _smooth_texture(size, size, rng, 16), env)
         u = np.clip(((reflected[..., 0] + 1.0) * 0.5 * (size - 1)).round().astype(int), 0, size - 1)
         v = np.clip(((reflected[..., 1] + 1.0) * 0.5 * (size - 1)).round().astype(int), 0, size - 1)
         img[mask] = 0.2 * img[mask] + 0.9 * env[v[mask], u[mask]][:, None]
