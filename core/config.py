@@ -39,6 +39,8 @@ class Settings(BaseSettings):
     job_hard_time_limit_s: int = Field(default=300, gt=0)
     visibility_timeout_s: int = Field(default=600, gt=0)
     max_attempts: int = Field(default=3, ge=1)
+    lease_s: float = Field(default=30.0, gt=0.0)
+    heartbeat_interval_s: float = Field(default=5.0, gt=0.0)
     progress_interval_s: float = Field(default=0.5, ge=0.0)
     warm_timeout_s: float = Field(default=900.0, gt=0.0)
     broker_timeout_s: float = Field(default=3.0, gt=1.0)
@@ -61,6 +63,9 @@ class Settings(BaseSettings):
         if self.visibility_timeout_s <= self.job_hard_time_limit_s:
             raise ValueError("visibility_timeout_s must exceed job_hard_time_limit_s, "
                              "or running jobs are delivered twice")
+        if not 2.0 * self.heartbeat_interval_s < self.lease_s < self.visibility_timeout_s:
+            raise ValueError("lease_s must exceed twice heartbeat_interval_s (or a live job's lease runs out "
+                             "between two heartbeats) and be below visibility_timeout_s")
         if self.environment == "production":
             if self.database_url.startswith("sqlite"):
                 raise ValueError("production needs a server database (VP_DATABASE_URL), not SQLite")

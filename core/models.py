@@ -87,6 +87,9 @@ class Registration(Base):
 
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     worker: Mapped[str | None] = mapped_column(String(200), default=None)
+    # Renewed by the process running the job (its lease): a running job whose heartbeat is
+    # older than the lease has lost its worker and is sent again (worker.jobs.reap_stale_jobs).
+    heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), default=None)
     stage: Mapped[str | None] = mapped_column(String(50), default=None)
     evaluations: Mapped[int] = mapped_column(Integer, default=0)
     current_loss: Mapped[float | None] = mapped_column(Float, default=None)

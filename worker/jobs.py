@@ -11,12 +11,18 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import threading
 import time
+from collections.abc import Callable
+from datetime import timedelta
+from types import TracebackType
 
 import cv2
 import numpy as np
 import numpy.typing as npt
+from sqlalchemy import ColumnElement, CursorResult, Update, and_, func, or_, select, update
 from sqlalchemy.exc import OperationalError
+from sqlalchemy.orm import Session
 
 from core.config import Settings, get_settings
 from core.db import session_scope
@@ -72,8 +78,24 @@ def fail_job(job_id: str, error_type: str, detail: str) -> None:
             job.finish(JobStatus.failed, error_type, detail)
 
 
+def _lease_lost(settings: Settings) -> ColumnElement[bool]:
+    """Running, and its worker has not renewed the lease for ``lease_s`` (a job claimed before
+    heartbeats existed counts from its start)."""
+    cutoff = utcnow() - timedelta(seconds=settings.lease_s)
+    return and_(Registration.status == JobStatus.running.value,
+                func.coalesce(Registration.heartbeat_at, Registration.started_at) < cutoff)
+
+
+def _updated(session: Session, statement: Update) -> int:
+    """Rows an UPDATE changed."""
+    result = session.execute(statement.execution_options(synchronize_session=False))
+    assert isinstance(result, CursorResult)
+    return int(result.rowcount)
+
+
 def _claim(job_id: str, settings: Settings) -> Registration | None:
-    """Mark the job running for this process; None when it must not run (done, or too many tries)."""
+    """Mark the job running for this process; None when it must not run (done, too many tries, or
+    running in another process whose lease holds: a second delivery of a job that is alive)."""
     with session_scope() as s:
         job = s.get(Registration, job_id)
         if job is None:
@@ -86,16 +108,76 @@ def _claim(job_id: str, settings: Settings) -> Registration | None:
             detail = f"the job was started {job.attempts} times and its worker never finished it"
             job.finish(JobStatus.failed, "worker-lost", detail)
             return None
-        job.attempts += 1
-        job.status = JobStatus.running.value
-        job.started_at = utcnow()
-        job.worker = f"{socket.gethostname()}:{os.getpid()}"
-        job.stage = "starting"
-        job.evaluations = 0
-        job.current_loss = None
-        s.flush()
+        now = utcnow()
+        # One statement decides, so two deliveries of one job cannot both take it.
+        taken = _updated(s, update(Registration)
+                         .where(Registration.id == job_id, Registration.attempts == job.attempts,
+                                or_(Registration.status == JobStatus.queued.value, _lease_lost(settings)))
+                         .values(attempts=job.attempts + 1, status=JobStatus.running.value, started_at=now,
+                                 heartbeat_at=now, worker=f"{socket.gethostname()}:{os.getpid()}",
+                                 stage="starting", evaluations=0, current_loss=None))
+        if not taken:
+            log.info("job %s is running in %s; duplicate delivery ignored", job_id, job.worker)
+            return None
+        s.refresh(job)
         s.expunge(job)
         return job
+
+
+class _Heartbeat:
+    """Renews the job's lease (``heartbeat_at``) every ``interval`` seconds while this process
+    works on it, from a thread of its own: the search holds no lock that would stop it, and a
+    whole worker that dies stops renewing, so :func:`reap_stale_jobs` sends the job again."""
+
+    def __init__(self, job: Registration, interval: float) -> None:
+        self.job_id, self.worker, self.interval = job.id, job.worker, interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{job.id}", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            try:
+                with session_scope() as s:
+                    _updated(s, update(Registration)
+                             .where(Registration.id == self.job_id, Registration.worker == self.worker,
+                                    Registration.status == JobStatus.running.value)
+                             .values(heartbeat_at=utcnow()))
+            except Exception as exc:  # the database may be down for a while: try again next time
+                log.warning("job %s: cannot renew its lease: %s", self.job_id, exc)
+
+    def __enter__(self) -> _Heartbeat:
+        self._thread.start()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        self._stop.set()
+        self._thread.join(timeout=self.interval + 5.0)
+
+
+def reap_stale_jobs(settings: Settings, send: Callable[[str], object], limit: int = 100) -> list[str]:
+    """Put the running jobs whose lease ran out back to ``queued`` (stage ``retrying``) and send
+    each again with ``send(job_id)``; returns their ids.
+
+    A whole worker that dies (SIGKILL, a lost machine or container) takes its pool's heartbeats
+    with it, and its job's message stays unacknowledged in the broker until the visibility
+    timeout (600 s). Each worker's main process runs this every third of ``lease_s``
+    (``worker.tasks``); a job is taken back by one of them only (one conditional update each).
+    If the message does come back later, its delivery finds the job ended or running elsewhere
+    and is ignored.
+    """
+    with session_scope() as s:
+        stale = list(s.scalars(select(Registration.id).where(_lease_lost(settings)).limit(limit)))
+    reaped = []
+    for job_id in stale:
+        with session_scope() as s:
+            taken = _updated(s, update(Registration)
+                             .where(Registration.id == job_id, _lease_lost(settings))
+                             .values(status=JobStatus.queued.value, stage="retrying"))
+        if taken:
+            log.warning("job %s: its worker stopped renewing the lease; sent again", job_id)
+            send(job_id)
+            reaped.append(job_id)
+    return reaped
 
 
 class _Progress:
@@ -140,7 +222,9 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     storage.put(thumb_key, thumbnail(overlay), "image/jpeg")
     with session_scope() as s:
         record = s.get(Registration, job.id)
-        if record is None:
+        if record is None or record.ended:
+            # Taken back and finished by another process while this one was late: the first
+            # result stands.
             return
         record.result = data
         record.loss = float(result.loss)
@@ -181,7 +265,8 @@ def run_job(
     if job is None:
         return "skipped"
     try:
-        _register(job, storage, get_library(), settings)
+        with _Heartbeat(job, settings.heartbeat_interval_s):
+            _register(job, storage, get_library(), settings)
         return JobStatus.succeeded.value
     except timeouts:
         fail_job(job_id, "timeout", f"the registration ran past {settings.job_soft_time_limit_s} s")

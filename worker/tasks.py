@@ -5,16 +5,17 @@ from __future__ import annotations
 import logging
 import subprocess
 import sys
+import threading
 from typing import Any
 
 from celery import Task, shared_task
 from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
-from celery.signals import worker_init, worker_process_init
+from celery.signals import worker_init, worker_process_init, worker_ready, worker_shutdown
 
 from core.config import get_settings
 from core.db import get_engine
 from core.queue import PREPARE_TASK, TASK
-from worker.jobs import Retry, fail_job, requeue, run_job
+from worker.jobs import Retry, fail_job, reap_stale_jobs, requeue, run_job
 
 log = logging.getLogger(__name__)
 
@@ -24,8 +25,43 @@ MAX_RETRIES = 12
 
 @worker_process_init.connect
 def _fresh_process(**_: object) -> None:
-    """A pool process starts with its own database connections (the GL context comes lazily)."""
+    """A pool process starts with its own database connections (the GL context comes lazily).
+
+    The parent's pool (its lease reaper's connections) is dropped without closing: closing a
+    connection inherited through the fork would end it for the parent too."""
+    get_engine().dispose(close=False)
     get_engine.cache_clear()
+
+
+_reaper_stop = threading.Event()
+
+
+@worker_ready.connect
+def start_lease_reaper(sender: Any = None, **_: object) -> None:
+    """In the worker's main process: every third of ``lease_s``, send again the running jobs
+    whose worker stopped renewing its lease (:func:`worker.jobs.reap_stale_jobs`)."""
+    settings = get_settings()
+    app = sender.app if sender is not None else None
+
+    def send(job_id: str) -> None:
+        assert app is not None
+        app.send_task(TASK, args=[job_id])
+
+    def loop() -> None:
+        while not _reaper_stop.wait(settings.lease_s / 3.0):
+            try:
+                reap_stale_jobs(settings, send)
+            except Exception as exc:  # database or broker away: the next round tries again
+                log.warning("lease reaper: %s: %s", type(exc).__name__, exc)
+
+    if app is not None:
+        _reaper_stop.clear()
+        threading.Thread(target=loop, name="lease-reaper", daemon=True).start()
+
+
+@worker_shutdown.connect
+def _stop_lease_reaper(**_: object) -> None:
+    _reaper_stop.set()
 
 
 @worker_init.connect

@@ -27,6 +27,10 @@ def test_settings_refuse_unsafe_combinations(tmp_path):
         Settings(data_dir=tmp_path, job_soft_time_limit_s=300, job_hard_time_limit_s=300)
     with pytest.raises(ValidationError, match="visibility"):
         Settings(data_dir=tmp_path, job_hard_time_limit_s=300, visibility_timeout_s=300)
+    with pytest.raises(ValidationError, match="lease_s"):
+        Settings(data_dir=tmp_path, lease_s=8.0, heartbeat_interval_s=5.0)
+    with pytest.raises(ValidationError, match="lease_s"):
+        Settings(data_dir=tmp_path, lease_s=700.0)
     with pytest.raises(ValidationError, match="SQLite"):
         Settings(data_dir=tmp_path, environment="production")
     with pytest.raises(ValidationError, match="24 characters"):

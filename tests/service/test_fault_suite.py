@@ -1,8 +1,8 @@
 """The fault suite: the scaled-out topology (PostgreSQL, Redis, an S3-compatible store, two
 worker processes, the API; tests/service/topology.py) with 50 jobs in flight while a worker process is
-killed mid-job, Redis restarts with jobs queued, PostgreSQL restarts, the store goes away for a
-while and the whole service restarts. Every job must end, succeeded or failed with a reason:
-none lost, none stuck."""
+killed mid-job, a whole worker dies and is replaced, Redis restarts with jobs queued, PostgreSQL
+restarts, the store goes away for a while and the whole service restarts. Every job must end,
+succeeded or failed with a reason: none lost, none stuck."""
 
 from __future__ import annotations
 
@@ -73,6 +73,11 @@ def test_fifty_jobs_through_every_fault_end_succeeded_or_failed_with_a_reason(tm
         victim = topo.pool_children()[0]
         os.kill(victim, signal.SIGKILL)
         faults.append("pool process SIGKILL")
+        time.sleep(2.0)
+
+        _wait_running(topo, ids)
+        topo.replace_worker(1)
+        faults.append("whole worker SIGKILL, replaced")
         time.sleep(2.0)
 
         topo.restart_redis()

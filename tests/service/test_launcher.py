@@ -12,7 +12,7 @@ from pathlib import Path
 
 import httpx
 
-from service_stack import encode, redis_of, start_stack, submit, wait_for
+from service_stack import children, encode, redis_of, start_stack, submit, wait_for
 
 
 def test_create_key_needs_the_service_database(tmp_path):
@@ -91,5 +91,33 @@ def test_a_stop_hands_running_jobs_back_and_they_run_after_the_restart(tmp_path,
         with stack.client() as c:
             body = wait_for(c, job_id, timeout=240)
             assert body["status"] == "succeeded" and body["attempts"] == 2, body
+    finally:
+        stack.stop()
+
+
+def test_a_whole_worker_killed_mid_job_is_taken_back_within_its_lease(tmp_path, scene):
+    """The worker's main process and its pool die together (a lost container or machine): the
+    job's message stays unacknowledged until the broker's visibility timeout (600 s), but its
+    lease (4 s here) runs out, a worker's reaper puts the job back and sends it again."""
+    stack = start_stack(tmp_path, workers=1, extra_env={"VP_LEASE_S": "4", "VP_HEARTBEAT_INTERVAL_S": "1"})
+    try:
+        with stack.client() as c:
+            options = json.dumps({"max_evaluations": 2000})
+            job_id = submit(c, encode(scene[0]), start=scene[2], options=options).json()["id"]
+            wait_for(c, job_id, until=("running",), timeout=60)
+            time.sleep(1.5)
+            workers = [pid for pid, _, cmd in children(stack.proc.pid) if b"celery" in cmd]
+            assert len(workers) == 1, children(stack.proc.pid)
+            pool = [pid for pid, _, _ in children(workers[0])]
+            killed = time.monotonic()
+            for pid in [workers[0], *pool]:
+                os.kill(pid, signal.SIGKILL)
+            # The launcher starts a new worker; its reaper finds the lease run out.
+            back = wait_for(c, job_id, until=("queued", "succeeded", "failed"), timeout=60)
+            assert back["status"] == "queued" and back["attempts"] == 1, back
+            body = wait_for(c, job_id, timeout=180)
+        assert body["status"] == "succeeded" and body["attempts"] == 2, body
+        assert time.monotonic() - killed < 120, "taken back by the visibility timeout, not by the lease"
+        assert "stopped renewing the lease; sent again" in stack.log.read_text()
     finally:
         stack.stop()

@@ -1,15 +1,17 @@
-"""The job runner: failed, duplicate and late-bad jobs, results, overlays and thumbnails."""
+"""The job runner: failed, duplicate and late-bad jobs, results, overlays and thumbnails, leases."""
 
 from __future__ import annotations
 
 import json
+import time
+from datetime import timedelta
 
 import pytest
 from sqlalchemy import select
 
 from core import config, db
 from core.migrate import upgrade
-from core.models import Client, JobStatus, Registration
+from core.models import Client, JobStatus, Registration, utcnow
 from core.security import create_client
 from vehicle_pose.render.synth import synthesize
 
@@ -81,6 +83,65 @@ def test_run_job_ignores_a_duplicate_delivery_of_a_finished_job(service_db, smal
     job_id = _job(client_id, store, small_photo[0], status=JobStatus.succeeded.value, attempts=1)
     assert run_job(job_id) == "skipped"
     assert _record(job_id).attempts == 1
+
+
+def test_a_job_running_in_a_live_process_is_not_taken_twice(service_db, small_photo):
+    from worker.jobs import run_job
+
+    client_id, store = service_db
+    alive = _job(client_id, store, small_photo[0], status=JobStatus.running.value, attempts=1, worker="other:1",
+                 started_at=utcnow(), heartbeat_at=utcnow())
+    assert run_job(alive) == "skipped"
+    job = _record(alive)
+    assert (job.status, job.attempts, job.worker) == ("running", 1, "other:1")
+    # The same job once its lease (30 s) ran out: its worker is gone, this delivery takes it.
+    lost = _job(client_id, store, small_photo[0], status=JobStatus.running.value, attempts=1, worker="other:1",
+                started_at=utcnow() - timedelta(seconds=120), heartbeat_at=utcnow() - timedelta(seconds=31))
+    assert run_job(lost) == "succeeded"
+    job = _record(lost)
+    assert job.status == "succeeded" and job.attempts == 2 and job.worker != "other:1"
+
+
+def test_reap_stale_jobs_sends_back_only_the_jobs_whose_lease_ran_out(service_db, small_photo):
+    from worker.jobs import reap_stale_jobs
+
+    client_id, store = service_db
+    now = utcnow()
+    stale = _job(client_id, store, small_photo[0], status=JobStatus.running.value, attempts=1,
+                 started_at=now - timedelta(seconds=90), heartbeat_at=now - timedelta(seconds=45))
+    legacy = _job(client_id, store, small_photo[0], status=JobStatus.running.value, attempts=1,
+                  started_at=now - timedelta(seconds=90))
+    fresh = _job(client_id, store, small_photo[0], status=JobStatus.running.value, attempts=1,
+                 started_at=now - timedelta(seconds=90), heartbeat_at=now - timedelta(seconds=5))
+    waiting = _job(client_id, store, small_photo[0])
+    sent: list[str] = []
+    assert sorted(reap_stale_jobs(config.get_settings(), sent.append)) == sorted([stale, legacy]) == sorted(sent)
+    for job_id in (stale, legacy):
+        job = _record(job_id)
+        assert (job.status, job.stage, job.attempts) == ("queued", "retrying", 1)
+    assert _record(fresh).status == "running" and _record(waiting).status == "queued"
+    assert reap_stale_jobs(config.get_settings(), sent.append) == [] and len(sent) == 2
+
+
+def test_the_heartbeat_renews_the_lease_while_the_job_runs(service_db, small_photo):
+    from worker.jobs import _Heartbeat
+
+    client_id, store = service_db
+    start = utcnow() - timedelta(seconds=20)
+    job_id = _job(client_id, store, small_photo[0], status=JobStatus.running.value, attempts=1, worker="me:1",
+                  started_at=start, heartbeat_at=start)
+    with _Heartbeat(_record(job_id), 0.05):
+        time.sleep(0.4)
+    renewed = _record(job_id).heartbeat_at
+    assert renewed is not None and renewed.replace(tzinfo=None) > start.replace(tzinfo=None) + timedelta(seconds=19)
+    # Another process's job is left alone.
+    other = _job(client_id, store, small_photo[0], status=JobStatus.running.value, attempts=1, worker="you:2",
+                 started_at=start, heartbeat_at=start)
+    record = _record(other)
+    record.worker = "me:1"
+    with _Heartbeat(record, 0.05):
+        time.sleep(0.3)
+    assert _record(other).heartbeat_at.replace(tzinfo=None) == start.replace(tzinfo=None)
 
 
 def test_run_job_reports_bad_input_found_late(service_db, small_photo):

@@ -130,6 +130,8 @@ class Topology:
             VP_JOB_SOFT_TIME_LIMIT_S="60",
             VP_JOB_HARD_TIME_LIMIT_S="90",
             VP_VISIBILITY_TIMEOUT_S="120",
+            VP_LEASE_S="8",
+            VP_HEARTBEAT_INTERVAL_S="1",
             VP_PROGRESS_INTERVAL_S="0.5",
         )
         if cache:
@@ -153,17 +155,29 @@ class Topology:
         with self.log.open("ab") as out:  # the children keep their own copy of the descriptor
             self._start_service(out)
 
+    def _worker(self, i: int, out: object) -> subprocess.Popen[bytes]:
+        return subprocess.Popen(
+            [sys.executable, "-m", "celery", "-A", "worker", "--quiet", "worker", "--loglevel", "INFO",
+             "--pool", "prefork", "--concurrency", "1", "-Q", "registrations", "--hostname",
+             f"w{i}-{time.time_ns()}@%h",
+             "--without-mingle", "--without-gossip"],
+            env=self.env, stdout=out, stderr=subprocess.STDOUT, cwd=self.root,
+        )
+
+    def replace_worker(self, i: int) -> None:
+        """Worker ``i`` dies whole, its pool with it (a lost container), and a new one starts."""
+        victim = self.workers[i]
+        for pid in [victim.pid, *(pid for pid, _, _ in children(victim.pid))]:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        victim.wait()
+        with self.log.open("ab") as out:
+            self.workers[i] = self._worker(i, out)
+
     def _start_service(self, out: object) -> None:
-        self.workers = [
-            subprocess.Popen(
-                [sys.executable, "-m", "celery", "-A", "worker", "--quiet", "worker", "--loglevel", "INFO",
-                 "--pool", "prefork", "--concurrency", "1", "-Q", "registrations", "--hostname",
-                 f"w{i}-{time.time_ns()}@%h",
-                 "--without-mingle", "--without-gossip"],
-                env=self.env, stdout=out, stderr=subprocess.STDOUT, cwd=self.root,
-            )
-            for i in range(self.n_workers)
-        ]
+        self.workers = [self._worker(i, out) for i in range(self.n_workers)]
         self.api_port = getattr(self, "api_port", None) or free_port()
         self.api = subprocess.Popen(
             [sys.executable, "-m", "uvicorn", "--factory", "app.main:create_app", "--host", "127.0.0.1", "--port",
