@@ -70,14 +70,20 @@ def _status(data_dir: Path, job_id: str) -> tuple[str, int]:
         return db.execute("SELECT status, attempts FROM registrations WHERE id = ?", (job_id,)).fetchone()
 
 
+def _long_job_running(c: httpx.Client, scene, seconds: float) -> str:
+    """Submit a job with a large budget and return its id once it has run for ``seconds``."""
+    options = json.dumps({"max_evaluations": 2000})
+    job_id = submit(c, encode(scene[0]), start=scene[2], options=options).json()["id"]
+    wait_for(c, job_id, until=("running",), timeout=60)
+    time.sleep(seconds)
+    return str(job_id)
+
+
 def test_a_stop_hands_running_jobs_back_and_they_run_after_the_restart(tmp_path, scene):
     stack = start_stack(tmp_path, workers=1, drain=1.0)
     try:
         with stack.client() as c:
-            options = json.dumps({"max_evaluations": 2000})
-            job_id = submit(c, encode(scene[0]), start=scene[2], options=options).json()["id"]
-            wait_for(c, job_id, until=("running",), timeout=60)
-            time.sleep(2.0)
+            job_id = _long_job_running(c, scene, 2.0)
     finally:
         t = time.monotonic()
         stack.stop()
@@ -102,10 +108,7 @@ def test_a_whole_worker_killed_mid_job_is_taken_back_within_its_lease(tmp_path, 
     stack = start_stack(tmp_path, workers=1, extra_env={"VP_LEASE_S": "4", "VP_HEARTBEAT_INTERVAL_S": "1"})
     try:
         with stack.client() as c:
-            options = json.dumps({"max_evaluations": 2000})
-            job_id = submit(c, encode(scene[0]), start=scene[2], options=options).json()["id"]
-            wait_for(c, job_id, until=("running",), timeout=60)
-            time.sleep(1.5)
+            job_id = _long_job_running(c, scene, 1.5)
             workers = [pid for pid, _, cmd in children(stack.proc.pid) if b"celery" in cmd]
             assert len(workers) == 1, children(stack.proc.pid)
             pool = [pid for pid, _, _ in children(workers[0])]
