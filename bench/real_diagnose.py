@@ -12,12 +12,16 @@ objective the search minimises (the named loss plus ``edge_weight`` times the ed
 - both again on a mask that GrabCut seeds with the annotated pose's silhouette;
 - the annotated rotation placed by ``fit_to_box`` on the whole frame (these photos are crops to
   the car), on the found pose's mask: the loss, the edge term and the silhouette's IoU with the
-  mask, beside the same for the found pose (``frame ...`` columns).
+  mask, beside the same for the found pose (``frame ...`` columns);
+- the objective of the structure's anchored search (the chamfer, the place and size fitted to
+  the client's box, the focal length the best of a grid) at the found rotation and at the
+  annotated one (``structure ...`` columns; docs/decisions/0012-structure-first.md).
 
 When the annotated rotation scores higher than the found pose on the same mask, the minimum
 is wrong (the search found a better pose by the objective's own measure); when it scores lower,
 the search did not reach it. Writes ``bench/results/real_diagnose[_TAG].json`` and, per case, a
-picture of the two poses over the two masks (``real_diagnose[_TAG]/<case>.png``).
+picture of the two poses over the two masks and, below, both rotations tied to the box
+(``real_diagnose[_TAG]/<case>.png``).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import argparse
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 from real import load_models
 
@@ -38,6 +43,7 @@ from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.loss.invariant import make_target
 from vehicle_pose.metrics import iou, rotation_error
 from vehicle_pose.photo import load_photo, resized, resized_mask
+from vehicle_pose.registration.structure import BoxAnchoredParams, StructureCost
 from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import NelderMeadRestarts
@@ -77,6 +83,24 @@ def refit_fixed_rotation(objective: Objective, model, camera: Camera, budget: in
 
     res = NelderMeadRestarts()(f, np.zeros(4), params.steps()[3:], max_evaluations=budget)
     return params.camera(np.concatenate([np.zeros(3), res.x])), float(res.fun)
+
+
+def tied_to_box(work: np.ndarray, model, found: Camera, R: np.ndarray, box: list[float], W: int,
+                options: RegistrationOptions, renderer: Renderer) -> tuple[Camera, float]:
+    """``R`` as the structure's anchored search sees it: the place and size fitted to ``box``
+    (photo pixels, the photo ``W`` wide), the focal length the best of a grid from a tenth to ten
+    times ``found``'s; the camera (at ``work``'s size) and its cost."""
+    Hf, Wf = work.shape[:2]
+    s = min(1.0, options.structure.structure_size / max(Wf, Hf))
+    w, h = max(8, round(Wf * s)), max(8, round(Hf * s))
+    level_box = tuple(float(v) * w / W for v in box)
+    cost = StructureCost(resized(work, w, h), model.exterior(options.pyramid.min_faces, renderer),
+                         renderer, options, tau=options.structure.anchor_tau)
+    ref = found.scaled(w, h)
+    params = BoxAnchoredParams(ref, level_box, model.mesh.sample_points(1000), model.mesh.sphere[0])
+    turn = cv2.Rodrigues(R @ ref.R.T)[0].ravel()
+    value, g = min((cost(params.camera(np.r_[turn, g])), g) for g in np.linspace(-2.3, 2.3, 47))
+    return params.camera(np.r_[turn, g]).scaled(Wf, Hf), float(value)
 
 
 def annotated(camera: Camera, R: np.ndarray, centre: np.ndarray) -> Camera:
@@ -142,16 +166,24 @@ def main() -> None:
             row[f"frame loss, {label}"] = float(on_own.loss(frame))
             row[f"frame edges, {label}"] = float(on_own.edges(frame)) if on_own.edges is not None else 0.0
             row[f"frame mask iou, {label}"] = iou(frame.coverage, own)
+        tied_found, row["structure cost, found"] = tied_to_box(work, model, found, found.R, hint["bbox"], W, options,
+                                                                renderer)
+        tied_truth, row["structure cost, annotated"] = tied_to_box(work, model, found, R_gt, hint["bbox"], W, options,
+                                                                   renderer)
+        row["structure minimum wrong"] = row["structure cost, annotated"] > row["structure cost, found"]
         rows.append(row)
         print(" ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
         over = np.concatenate([draw_overlay(work, model.lod(16384), found, renderer=renderer, shade=0.5),
                                draw_overlay(work, model.lod(16384), truth2, renderer=renderer, shade=0.5)], 1)
         masks = np.concatenate([own, seeded], 1)[..., None].repeat(3, 2).astype(np.uint8) * 255
-        save_png(pictures / f"{case.name}.png", np.concatenate([over, masks], 0))
+        tied = np.concatenate([draw_overlay(work, model.lod(16384), tied_found, renderer=renderer),
+                               draw_overlay(work, model.lod(16384), tied_truth, renderer=renderer)], 1)
+        save_png(pictures / f"{case.name}.png", np.concatenate([over, masks, tied], 0))
     summary = [{
         "cases": len(rows),
         "minimum wrong, own mask": sum(r["minimum wrong"] for r in rows),
         "minimum wrong, seeded mask": sum(r["annotated, seeded mask"] > r["found, seeded mask"] for r in rows),
+        "structure minimum wrong": sum(r["structure minimum wrong"] for r in rows),
         "median found deg": float(np.median([r["found deg"] for r in rows])),
         "median mask iou": float(np.median([r["mask iou"] for r in rows])),
     }]

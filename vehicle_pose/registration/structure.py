@@ -53,7 +53,7 @@ from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import CrossEntropy, Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow, fit_to_box
 
-__all__ = ["BoxAnchoredParams", "Structure", "find_structure", "structure_fit", "loss_at"]
+__all__ = ["BoxAnchoredParams", "Structure", "StructureCost", "find_structure", "structure_fit", "loss_at"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -109,7 +109,7 @@ class Structure:
     seconds: float
 
 
-def _search(optimizer: Optimizer, objective: _Objective, params: BoxAnchoredParams | ViewParams, x0: FloatArray,
+def _search(optimizer: Optimizer, objective: StructureCost, params: BoxAnchoredParams | ViewParams, x0: FloatArray,
             steps: FloatArray, budget: int) -> OptimizeResult:
     def fun(x: FloatArray) -> float:
         try:
@@ -121,20 +121,25 @@ def _search(optimizer: Optimizer, objective: _Objective, params: BoxAnchoredPara
     return optimizer(fun, x0, steps, max_evaluations=budget)
 
 
-class _Objective:
-    """The chamfer of the model's edges against the photo's, plus ``box_weight`` times the box term."""
+class StructureCost:
+    """The chamfer of ``mesh``'s edges against the photo's (truncated at ``tau`` of the diagonal,
+    creases as ``options.terms`` says), plus ``box_weight`` times the box term of ``points``
+    when a ``box`` is given; called with a camera for the photo's size. ``progress`` is told
+    every 20 calls, as ``stage``."""
 
-    def __init__(self, image: npt.NDArray[np.uint8], mesh: Mesh, renderer: Renderer, tau: float,
-                 crease: float, box: Box | None, box_points: FloatArray, options: RegistrationOptions,
-                 progress: Progress | None, stage: str) -> None:
-        self.edges = EdgeLoss(image, tau=tau, crease=crease)
-        self.mesh, self.renderer, self.box, self.box_points = mesh, renderer, box, box_points
+    def __init__(self, image: npt.NDArray[np.uint8], mesh: Mesh, renderer: Renderer, options: RegistrationOptions,
+                 *, tau: float, box: Box | None = None, points: FloatArray | None = None,
+                 progress: Progress | None = None, stage: str = "") -> None:
+        if box is not None and points is None:
+            raise ValueError("the box term needs the model's points")
+        self.edges = EdgeLoss(image, tau=tau, crease=options.terms.edge_crease)
+        self.mesh, self.renderer, self.box, self.box_points = mesh, renderer, box, points
         self.terms = options.terms
         self.progress, self.stage, self.count = progress, stage, 0
 
     def __call__(self, cam: Camera) -> float:
         value = self.edges(self.renderer.render(self.mesh, cam))
-        if self.box is not None and self.terms.box_weight > 0:
+        if self.box is not None and self.box_points is not None and self.terms.box_weight > 0:
             value += self.terms.box_weight * box_overflow(cam, self.box_points, self.box, self.terms.box_tolerance,
                                                           self.terms.box_shortfall)
         self.count += 1
@@ -171,8 +176,8 @@ def find_structure(
     mesh = model.exterior(options.pyramid.min_faces, renderer)
 
     anchored = BoxAnchoredParams(ref, level_box, points, centre)
-    objective = _Objective(image, mesh, renderer, st.anchor_tau, options.terms.edge_crease, None, points, options,
-                           progress, f"structure anchored ({w}x{h})")
+    objective = StructureCost(image, mesh, renderer, options, tau=st.anchor_tau, progress=progress,
+                              stage=f"structure anchored ({w}x{h})")
     # The first generation's spread: the start's rotation error (5-15 degrees for a rough
     # start) about the image's horizontal and vertical axes, half that about the optical axis
     # (photos are mostly level), and a factor of two either way in focal length.
@@ -186,8 +191,8 @@ def find_structure(
     levels = [LevelReport(w, h, mesh.n_faces, found.evaluations, found.restarts, float("nan"), t1 - t0, found.fun)]
 
     free = ViewParams(camera, centre, options.probes.dolly_pivot * model.mesh.sphere[1])
-    refine = _Objective(image, mesh, renderer, st.structure_tau, options.terms.edge_crease, level_box, points, options,
-                        progress, f"structure refined ({w}x{h})")
+    refine = StructureCost(image, mesh, renderer, options, tau=st.structure_tau, box=level_box, points=points,
+                           progress=progress, stage=f"structure refined ({w}x{h})")
     res = _search(optimizer, refine, free, free.start(), 0.3 * free.steps(), st.structure_evaluations)
     if res.fun < refine(camera):
         camera = free.camera(res.x)
