@@ -134,12 +134,13 @@ def register(
 
     timings: dict[str, float] = {}
     listed: list[dict[str, Any]] = []
+    stage = "shading"
     if init_camera is not None:
         source, method = "init_camera", "given"
         timings["start"] = 0.0
         start = _given_start(work, model, init_camera, rect, options)
         found = fit(work, model, start, options, FitPlan.hinted(options), renderer, optimizer, progress, fg, box=rect)
-        spent, grabcut_seconds, stage = [found], found.grabcut_seconds, "shading"
+        spent, grabcut_seconds = [found], found.grabcut_seconds
         if (rect is not None and options.structure.structure
                 and loss_share(found.loss, work, options.color) > options.structure.shading_trust):
             # The shading does not explain the photo (real paint and glass mirror their
@@ -161,7 +162,6 @@ def register(
         start, method = searched.candidate.camera, searched.candidate.source
         spent, grabcut_seconds = searched.spent, searched.grabcut_seconds
         timings.update(searched.timings)
-        stage = "shading"
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
                    W0, H0, time.perf_counter() - t_start, stage)

@@ -78,9 +78,6 @@ class BoxAnchoredParams:
     def start(self) -> FloatArray:
         return np.zeros(4)
 
-    def steps(self) -> FloatArray:
-        return np.array([0.08, 0.08, 0.08, 0.3])
-
     @cached_property
     def _depth(self) -> float:
         """The reference's depth of the model centre (mesh units), kept as the fit's first guess."""
@@ -101,12 +98,15 @@ class BoxAnchoredParams:
 
 @dataclass
 class Structure:
-    """The structure stages' pose (at working size), each stage's report and pose."""
+    """Each structure stage's report and pose (at working size); the last pose is the result."""
 
-    camera: Camera
     levels: list[LevelReport]
     cameras: list[Camera]
     seconds: float
+
+    @property
+    def camera(self) -> Camera:
+        return self.cameras[-1]
 
 
 def _search(optimizer: Optimizer, objective: StructureCost, params: BoxAnchoredParams | ViewParams, x0: FloatArray,
@@ -198,8 +198,7 @@ def find_structure(
         camera = free.camera(res.x)
     levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, float("nan"),
                               time.perf_counter() - t1, res.fun))
-    return Structure(camera.scaled(Wf, Hf), levels, [anchored_camera.scaled(Wf, Hf), camera.scaled(Wf, Hf)],
-                     time.perf_counter() - t0)
+    return Structure(levels, [anchored_camera.scaled(Wf, Hf), camera.scaled(Wf, Hf)], time.perf_counter() - t0)
 
 
 def loss_at(work: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], camera: Camera, model: VehicleModel,
