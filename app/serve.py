@@ -179,22 +179,14 @@ def _hand_back() -> None:
     """After this launcher's workers are gone, no job of this machine is running: a job whose
     record still says so was cut off by the stop, and its message is back in the queue
     (acks_late), so its record says ``queued`` until a worker takes it again."""
-    from sqlalchemy import update
-
-    from core.db import session_scope
-    from core.models import JobStatus, Registration
+    from core.db import session_scope, updated_rows
+    from core.models import Registration, requeued
 
     try:
         with session_scope() as s:
-            done = s.execute(
-                update(Registration)
-                .where(Registration.status == JobStatus.running.value,
-                       Registration.worker.like(f"{socket.gethostname()}:%"))
-                .values(status=JobStatus.queued.value, stage="retrying")
-            )
-        if done.rowcount:  # type: ignore[attr-defined]
-            print(f"vehicle-pose-service: {done.rowcount} running job(s) handed back to the queue",  # type: ignore[attr-defined]
-                  file=sys.stderr, flush=True)
+            done = updated_rows(s, requeued(Registration.worker.like(f"{socket.gethostname()}:%")))
+        if done:
+            print(f"vehicle-pose-service: {done} running job(s) handed back to the queue", file=sys.stderr, flush=True)
     except Exception as exc:  # the database may be what failed
         print(f"vehicle-pose-service: cannot mark the cut-off jobs queued: {exc}", file=sys.stderr, flush=True)
 

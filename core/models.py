@@ -10,6 +10,7 @@ from typing import Any
 from sqlalchemy import (
     JSON,
     Boolean,
+    ColumnElement,
     DateTime,
     Float,
     ForeignKey,
@@ -18,6 +19,8 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    Update,
+    update,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
@@ -128,6 +131,14 @@ class Registration(Base):
         if status is JobStatus.failed:
             self.error_type = error_type or "internal-error"
             self.error_detail = detail or ""
+
+
+def requeued(*where: ColumnElement[bool]) -> Update:
+    """The UPDATE that puts the running jobs matching ``where`` back to ``queued`` (stage
+    ``retrying``): a job whose run was cut off and that will run again says so."""
+    return (update(Registration)
+            .where(Registration.status == JobStatus.running.value, *where)
+            .values(status=JobStatus.queued.value, stage="retrying"))
 
 
 def as_utc(t: datetime) -> datetime:

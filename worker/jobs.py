@@ -20,14 +20,13 @@ from types import TracebackType
 import cv2
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import ColumnElement, CursorResult, Update, and_, func, or_, select, update
+from sqlalchemy import ColumnElement, and_, func, or_, select, update
 from sqlalchemy.exc import OperationalError
-from sqlalchemy.orm import Session
 
 from core.config import Settings, get_settings
-from core.db import session_scope
+from core.db import session_scope, updated_rows
 from core.library import get_library
-from core.models import JobStatus, Registration, utcnow
+from core.models import JobStatus, Registration, requeued, utcnow
 from core.storage import ObjectMissing, Storage, StorageUnavailable, get_storage
 from vehicle_pose import (
     Camera,
@@ -86,13 +85,6 @@ def _lease_lost(settings: Settings) -> ColumnElement[bool]:
                 func.coalesce(Registration.heartbeat_at, Registration.started_at) < cutoff)
 
 
-def _updated(session: Session, statement: Update) -> int:
-    """Rows an UPDATE changed."""
-    result = session.execute(statement.execution_options(synchronize_session=False))
-    assert isinstance(result, CursorResult)
-    return int(result.rowcount)
-
-
 def _claim(job_id: str, settings: Settings) -> Registration | None:
     """Mark the job running for this process; None when it must not run (done, too many tries, or
     running in another process whose lease holds: a second delivery of a job that is alive)."""
@@ -110,7 +102,7 @@ def _claim(job_id: str, settings: Settings) -> Registration | None:
             return None
         now = utcnow()
         # One statement decides, so two deliveries of one job cannot both take it.
-        taken = _updated(s, update(Registration)
+        taken = updated_rows(s, update(Registration)
                          .where(Registration.id == job_id, Registration.attempts == job.attempts,
                                 or_(Registration.status == JobStatus.queued.value, _lease_lost(settings)))
                          .values(attempts=job.attempts + 1, status=JobStatus.running.value, started_at=now,
@@ -138,7 +130,7 @@ class _Heartbeat:
         while not self._stop.wait(self.interval):
             try:
                 with session_scope() as s:
-                    _updated(s, update(Registration)
+                    updated_rows(s, update(Registration)
                              .where(Registration.id == self.job_id, Registration.worker == self.worker,
                                     Registration.status == JobStatus.running.value)
                              .values(heartbeat_at=utcnow()))
@@ -170,9 +162,7 @@ def reap_stale_jobs(settings: Settings, send: Callable[[str], object], limit: in
     reaped = []
     for job_id in stale:
         with session_scope() as s:
-            taken = _updated(s, update(Registration)
-                             .where(Registration.id == job_id, _lease_lost(settings))
-                             .values(status=JobStatus.queued.value, stage="retrying"))
+            taken = updated_rows(s, requeued(Registration.id == job_id, _lease_lost(settings)))
         if taken:
             log.warning("job %s: its worker stopped renewing the lease; sent again", job_id)
             send(job_id)
@@ -294,7 +284,4 @@ def run_job(
 def requeue(job_id: str) -> None:
     """Put a job that will be retried back to ``queued`` so its status says so."""
     with session_scope() as s:
-        job = s.get(Registration, job_id)
-        if job is not None and job.status == JobStatus.running.value:
-            job.status = JobStatus.queued.value
-            job.stage = "retrying"
+        updated_rows(s, requeued(Registration.id == job_id))

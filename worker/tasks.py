@@ -40,23 +40,19 @@ _reaper_stop = threading.Event()
 def start_lease_reaper(sender: Any = None, **_: object) -> None:
     """In the worker's main process: every third of ``lease_s``, send again the running jobs
     whose worker stopped renewing its lease (:func:`worker.jobs.reap_stale_jobs`)."""
-    settings = get_settings()
-    app = sender.app if sender is not None else None
-
-    def send(job_id: str) -> None:
-        assert app is not None
-        app.send_task(TASK, args=[job_id])
+    if sender is None:
+        return
+    settings, app = get_settings(), sender.app
 
     def loop() -> None:
         while not _reaper_stop.wait(settings.lease_s / 3.0):
             try:
-                reap_stale_jobs(settings, send)
+                reap_stale_jobs(settings, lambda job_id: app.send_task(TASK, args=[job_id]))
             except Exception as exc:  # database or broker away: the next round tries again
                 log.warning("lease reaper: %s: %s", type(exc).__name__, exc)
 
-    if app is not None:
-        _reaper_stop.clear()
-        threading.Thread(target=loop, name="lease-reaper", daemon=True).start()
+    _reaper_stop.clear()
+    threading.Thread(target=loop, name="lease-reaper", daemon=True).start()
 
 
 @worker_shutdown.connect
