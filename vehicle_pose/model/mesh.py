@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vehicle_pose.errors import EmptyMeshError
+from vehicle_pose.model.progressive import Progressive
 
 # trimesh, cv2 and fast_simplification are imported where they are used: a process that only
 # reads prepared models (vehicle_pose.model.store) never needs them.
@@ -146,7 +147,6 @@ class Mesh:
         """
         if self.n_faces <= max_faces:
             return self
-        import fast_simplification
         import trimesh
 
         from vehicle_pose.model.loading import shading_geometry
@@ -158,11 +158,10 @@ class Mesh:
             if budget >= len(p.faces) or len(p.faces) < 64:
                 parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
                 continue
-            merged_vertices, merged_faces = self._merged(p)
-            with _SIMPLIFY_LOCK:  # the simplifier keeps its mesh in global state
-                pts, tris = fast_simplification.simplify(
-                    merged_vertices, merged_faces, target_reduction=1.0 - budget / len(p.faces),
-                )
+            progressive = self._progressive(p)
+            # the count fast_simplification.simplify(target_reduction=1 - budget / faces) aims at
+            target = int((1 - (1.0 - budget / len(p.faces))) * len(progressive.faces))
+            pts, tris = progressive.level(target)
             if len(tris) == 0:
                 continue
             tm = trimesh.Trimesh(pts, tris, process=False)
@@ -172,17 +171,18 @@ class Mesh:
             )
         return Mesh(tuple(parts), source=f"{self.source} (decimated to {max_faces})")
 
-    def _merged(self, part: Part) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
-        """The part's vertices and faces with coincident vertices merged, kept for the next
-        level's decimation (0.6 s a level for a 2M-face mesh)."""
-        cache: dict[int, tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]]
-        cache = self.__dict__.setdefault("_merged_cache", {})
+    def _progressive(self, part: Part) -> Progressive:
+        """The part's simplification (coincident vertices merged first), run once for every
+        level (:mod:`vehicle_pose.model.progressive`)."""
+        cache: dict[int, Progressive] = self.__dict__.setdefault("_progressive_cache", {})
         found = cache.get(id(part))
         if found is None:
             import trimesh
 
             merged = trimesh.Trimesh(part.vertices, part.faces, process=True)
-            found = cache[id(part)] = (np.asarray(merged.vertices, np.float64), np.asarray(merged.faces, np.int64))
+            with _SIMPLIFY_LOCK:  # the simplifier keeps its mesh in global state
+                found = cache[id(part)] = Progressive(np.asarray(merged.vertices, np.float64),
+                                                      np.asarray(merged.faces, np.int64))
         return found
 
     def outlines(self, size: int = 256,
@@ -192,7 +192,6 @@ class Mesh:
         Drawn on the CPU (no OpenGL) within ``frame`` = (centre, radius), the mesh's enclosing
         sphere by default; :meth:`outline_agreement` compares two meshes on the same frame.
         """
-        import cv2
 
         centre, radius = self.sphere if frame is None else frame
         dirs = [np.eye(3)[i] * s for i in range(3) for s in (1.0, -1.0)]
@@ -208,17 +207,19 @@ class Mesh:
             a = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
             a /= np.linalg.norm(a)
             b = np.cross(d, a)
-            uv = np.stack([verts @ a, verts @ b], axis=1) * scale + (size / 2.0) * one
-            tris = np.round(uv[faces]).astype(np.int32)
-            extent = tris.max(axis=1) - tris.min(axis=1)
-            small = extent.max(axis=1) < one
+            uv = np.round(np.stack([verts @ a, verts @ b], axis=1) * scale + (size / 2.0) * one).astype(np.int32)
+            c0, c1, c2 = uv[faces[:, 0]], uv[faces[:, 1]], uv[faces[:, 2]]
+            lo, hi = np.minimum(np.minimum(c0, c1), c2), np.maximum(np.maximum(c0, c1), c2)
+            small = np.maximum(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1]) < one
             # Triangles under a pixel mark the pixels of their corners (a dense mesh has
             # millions); the others are filled one call each, as fillPoly on many polygons
             # fills their overlaps even-odd.
-            px = np.clip(tris[small].reshape(-1, 2) >> shift, 0, size - 1)
+            corner = np.zeros(len(verts), bool)
+            corner[faces[small].reshape(-1)] = True
+            px = np.clip(uv[corner] >> shift, 0, size - 1)
             out[k][px[:, 1], px[:, 0]] = 1
-            for tri in tris[~small]:
-                cv2.fillConvexPoly(out[k], tri, 1, cv2.LINE_8, shift)
+            large = np.flatnonzero(~small)
+            _fill_triangles(out[k], np.stack([c0[large], c1[large], c2[large]], axis=1), lo[large], hi[large], shift)
         return out.astype(bool)
 
     @cached_property
@@ -232,6 +233,39 @@ class Mesh:
         inter = (a & b).sum(axis=(1, 2))
         union = np.maximum((a | b).sum(axis=(1, 2)), 1)
         return float((inter / union).min())
+
+
+def _fill_triangles(image: npt.NDArray[np.uint8], tris: npt.NDArray[np.int32],
+                    lo: npt.NDArray[np.int32], hi: npt.NDArray[np.int32], shift: int) -> None:
+    """Fill triangles ``tris`` (T, 3, 2), fixed point with ``shift`` bits, into ``image`` with 1
+    (``lo``, ``hi``: their corners' bounds).
+
+    A triangle whose pixels are all set already changes nothing, so the largest are drawn
+    first and, between batches, those whose corners' box (widened by a pixel, which holds
+    every pixel cv2.fillConvexPoly may touch) is already full are skipped: the image is the
+    one drawing every triangle gives, with a fraction of the calls where the surfaces overlap.
+    """
+    import cv2
+
+    size_y, size_x = image.shape
+    one = 1 << shift
+    x0 = np.clip((lo[:, 0] >> shift) - 1, 0, size_x)
+    x1 = np.clip(((hi[:, 0] + one - 1) >> shift) + 2, 0, size_x)
+    y0 = np.clip((lo[:, 1] >> shift) - 1, 0, size_y)
+    y1 = np.clip(((hi[:, 1] + one - 1) >> shift) + 2, 0, size_y)
+    area = (hi[:, 0] - lo[:, 0]).astype(np.int64) * (hi[:, 1] - lo[:, 1])
+    which = np.argsort(-area, kind="stable")
+    x0, x1, y0, y1 = x0[which], x1[which], y0[which], y1[which]
+    batch = 512
+    while len(which):
+        for t in which[:batch]:
+            cv2.fillConvexPoly(image, tris[t], 1, cv2.LINE_8, shift)
+        which, x0, x1, y0, y1 = which[batch:], x0[batch:], x1[batch:], y0[batch:], y1[batch:]
+        if len(which):
+            s = cv2.integral(image)
+            full = s[y1, x1] - s[y0, x1] - s[y1, x0] + s[y0, x0] == (y1 - y0) * (x1 - x0)
+            which, x0, x1, y0, y1 = which[~full], x0[~full], x1[~full], y0[~full], y1[~full]
+            batch *= 2
 
 
 def _share_faces(sizes: Sequence[int], budget: int) -> list[int]:

@@ -36,10 +36,8 @@ void main() {
 _ID_FRAGMENT_SHADER = """
 #version 330
 uniform int base;
-layout(location = 0) out vec4 out_attr;
-layout(location = 1) out float out_id;
+layout(location = 0) out float out_id;
 void main() {
-    out_attr = vec4(0.0);
     float id = float(base + gl_PrimitiveID + 1);
     out_id = gl_FrontFacing ? id : -id;
 }
@@ -136,7 +134,7 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
         renderer.ctx.scissor = None
         renderer.ctx.enable(moderngl.DEPTH_TEST)
         renderer.ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        fbo = renderer.framebuffer(size, size, "f4")
+        fbo = renderer.framebuffer(size, size, "f4", attributes=False)  # face ids and depth
         fbo.use()
         fbo.viewport = (0, 0, size, size)
         for mvp in _view_matrices(mesh, sphere_directions(directions), distance):
@@ -145,7 +143,7 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
             for vao, first in draws:
                 uniform(program, "base").value = first
                 vao.render(moderngl.TRIANGLES)
-            ids = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32).astype(np.int64)
+            ids = np.frombuffer(fbo.read(components=1, attachment=0, dtype="f4"), np.float32).astype(np.int64)
             front += np.bincount(ids[ids > 0], minlength=base + 1)
             back += np.bincount(-ids[ids < 0], minlength=base + 1)
     finally:

@@ -210,7 +210,7 @@ class Renderer:
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         uniform(self.program, "tex").value = 0
         self._meshes: OrderedDict[int, GpuMesh] = OrderedDict()
-        self._fbos: OrderedDict[tuple[int, int, str], moderngl.Framebuffer] = OrderedDict()
+        self._fbos: OrderedDict[tuple[int, int, str, bool], moderngl.Framebuffer] = OrderedDict()
         self._cache_size = cache_size
         self._programs: dict[str, moderngl.Program] = {}
 
@@ -226,24 +226,24 @@ class Renderer:
             self._meshes.move_to_end(mesh.key)
         return gpu
 
-    def framebuffer(self, width: int, height: int, label_dtype: str = "f1") -> moderngl.Framebuffer:
+    def framebuffer(self, width: int, height: int, label_dtype: str = "f1", *,
+                    attributes: bool = True) -> moderngl.Framebuffer:
         """A framebuffer of attributes (RGBA float32), labels (one channel) and depth.
 
         Labels are 8-bit normalised for rendering (a quarter of the bytes to write, clear and
-        read of float32), float32 for the exterior pass's face ids.
+        read of float32), float32 for the exterior pass's face ids, which needs no attributes
+        (``attributes=False``: the labels are attachment 0).
         """
-        key = (width, height, label_dtype)
+        key = (width, height, label_dtype, attributes)
         fbo = self._fbos.get(key)
         if fbo is None:
             # Keep the framebuffer bound last (the most recent entry): creating a framebuffer
             # rebinds the previous one, which must still exist.
             while len(self._fbos) >= 4:
                 self._fbos.pop(next(iter(self._fbos))).release()
+            colour = [self.ctx.renderbuffer((width, height), 4, dtype="f4")] if attributes else []
             fbo = self.ctx.framebuffer(
-                color_attachments=[
-                    self.ctx.renderbuffer((width, height), 4, dtype="f4"),
-                    self.ctx.renderbuffer((width, height), 1, dtype=label_dtype),
-                ],
+                color_attachments=[*colour, self.ctx.renderbuffer((width, height), 1, dtype=label_dtype)],
                 depth_attachment=self.ctx.depth_renderbuffer((width, height)),
             )
             self._fbos[key] = fbo

@@ -1,0 +1,87 @@
+"""Levels of detail from one simplification: each the simplifier's own result, to the last bit.
+
+The reference is fast-simplification run to each target; the meshes are the shipped sedan's
+parts (closed shells and open sheets with borders), the same parts as a triangle soup merged back,
+a subdivided body (many collapses per vertex) and a sheet with degenerate faces.
+"""
+
+from __future__ import annotations
+
+import fast_simplification
+import numpy as np
+import pytest
+import trimesh
+
+from vehicle_pose.model.mesh import _fill_triangles
+from vehicle_pose.model.progressive import Progressive
+
+
+def _merged(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    tm = trimesh.Trimesh(vertices, faces, process=True)
+    return np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64)
+
+
+def _same_as_the_simplifier(vertices: np.ndarray, faces: np.ndarray, fractions=(0.7, 0.3, 0.1, 0.02, 0.0)) -> None:
+    progressive = Progressive(vertices, faces)
+    for fraction in fractions:
+        target = int(fraction * len(faces))
+        points, tris, collapses = fast_simplification.simplify(vertices, faces, target_count=target,
+                                                               return_collapses=True)
+        got_points, got_tris = progressive.level(target)
+        assert progressive.collapses_for(target) == len(collapses)
+        np.testing.assert_array_equal(got_tris, tris)
+        assert got_points.dtype == np.float64
+        np.testing.assert_array_equal(got_points, points)  # bitwise, NaN where the simplifier has NaN
+
+
+def _sedan_part(sedan, kind: str):
+    return max((p for p in sedan.mesh.parts if p.kind == kind), key=lambda p: len(p.faces))
+
+
+@pytest.mark.parametrize("kind", ["body", "glass", "tyre"])
+def test_every_level_is_the_simplifiers_own_result(sedan, kind):
+    part = _sedan_part(sedan, kind)
+    _same_as_the_simplifier(*_merged(part.vertices, part.faces))
+
+
+def test_a_subdivided_body_collapsed_many_times_over(sedan):
+    part = _sedan_part(sedan, "body")
+    v, f = _merged(part.vertices, part.faces)
+    v, f = trimesh.remesh.subdivide(v, f)
+    _same_as_the_simplifier(v, np.asarray(f, np.int64), fractions=(0.5, 0.05, 0.01))
+
+
+def test_an_open_sheet_with_degenerate_faces():
+    grid = np.stack(np.meshgrid(np.linspace(0, 1, 30), np.linspace(0, 1, 30)), -1).reshape(-1, 2)
+    rng = np.random.default_rng(3)
+    vertices = np.c_[grid, 0.05 * rng.standard_normal(len(grid))]
+    i = np.arange(29)[:, None] * 30 + np.arange(29)[None, :]
+    i = i.reshape(-1)
+    faces = np.r_[np.c_[i, i + 1, i + 30], np.c_[i + 1, i + 31, i + 30]]
+    vertices = np.r_[vertices, vertices[:5]]  # five faces of zero area (their normals are NaN)
+    faces = np.r_[faces, np.c_[np.arange(5), np.arange(5) + 1, len(grid) + np.arange(5)]]
+    _same_as_the_simplifier(vertices, faces.astype(np.int64))
+
+
+def test_a_level_asks_no_more_collapses_than_the_run_made(sedan):
+    part = _sedan_part(sedan, "body")
+    progressive = Progressive(*_merged(part.vertices, part.faces))
+    assert progressive.collapses_for(len(progressive.faces)) == 0
+    assert progressive.collapses_for(0) == len(progressive.collapses)
+    assert progressive.collapses_for(len(progressive.faces) - 1) == 1
+
+
+def test_skipping_covered_triangles_draws_what_every_triangle_draws():
+    import cv2
+
+    rng = np.random.default_rng(5)
+    shift, size = 4, 96
+    centre = rng.uniform(-10, size + 10, (1500, 1, 2))  # some partly or wholly off the image
+    tris = np.round((centre + rng.normal(0, 3, (1500, 3, 2))) * (1 << shift)).astype(np.int32)
+    every = np.zeros((size, size), np.uint8)
+    for t in tris:
+        cv2.fillConvexPoly(every, t, 1, cv2.LINE_8, shift)
+    skipped = np.zeros((size, size), np.uint8)
+    _fill_triangles(skipped, tris, tris.min(axis=1), tris.max(axis=1), shift)
+    np.testing.assert_array_equal(skipped, every)
+    assert 0.3 < every.mean() < 1.0

@@ -1,0 +1,229 @@
+"""Every level of detail of a part from one run of the quadric simplifier.
+
+fast-simplification (Fast Quadric Mesh Simplification) collapses edges in an order that does
+not depend on the target: a run to a coarse target passes through every finer one, and its
+record of collapses holds them all. :class:`Progressive` runs the simplifier once, as far as it
+goes, and gives any target's mesh from a prefix of that record: the same faces, in the same
+order, with the same vertex positions to the last bit as a run of the simplifier to that
+target (``tests/model/test_progressive.py`` checks it against the library). A 2M-face mesh's
+eight levels then cost one simplification instead of eight or more (each level's outline check
+may ask for another).
+
+The positions are the simplifier's own arithmetic replayed in numpy (``Simplify.h``): each
+vertex starts with the sum of the plane quadrics of its faces (summed in face order), a
+collapse ``i1 -> i0`` adds the two quadrics and moves ``i0`` to the quadric's minimum, or, where
+the quadric is singular or both vertices lie on a border, to the better of ``i0``, ``i1`` and
+their midpoint. Collapses are evaluated in waves along their dependencies (a collapse needs the
+previous collapses into its two vertices), each wave as array operations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["Progressive"]
+
+_F64 = npt.NDArray[np.float64]
+_I64 = npt.NDArray[np.int64]
+
+
+def _det(q: _F64, a11: int, a12: int, a13: int, a21: int, a22: int, a23: int, a31: int, a32: int, a33: int) -> _F64:
+    """``SymetricMatrix::det`` on rows of 10 quadric coefficients, in its order of operations."""
+    m = q.T
+    det: _F64 = (m[a11] * m[a22] * m[a33] + m[a13] * m[a21] * m[a32] + m[a12] * m[a23] * m[a31]
+                 - m[a13] * m[a22] * m[a31] - m[a11] * m[a23] * m[a32] - m[a12] * m[a21] * m[a33])
+    return det
+
+
+def _vertex_error(q: _F64, p: _F64) -> _F64:
+    m, x, y, z = q.T, p[:, 0], p[:, 1], p[:, 2]
+    error: _F64 = (m[0] * x * x + 2 * m[1] * x * y + 2 * m[2] * x * z + 2 * m[3] * x + m[4] * y * y
+                   + 2 * m[5] * y * z + 2 * m[6] * y + m[7] * z * z + 2 * m[8] * z + m[9])
+    return error
+
+
+def _plane_quadrics(vertices: _F64, faces: _I64) -> _F64:
+    """Each vertex's sum of its faces' plane quadrics (V, 10), added face by face in order."""
+    p0, p1, p2 = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    a, b = p1 - p0, p2 - p0
+    n = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+                  a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                  a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+    square = np.sqrt(n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2])
+    with np.errstate(invalid="ignore", divide="ignore"):  # a degenerate face: NaN, as in C++
+        n = n / square[:, None]
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    d = -(p0[:, 0] * x + p0[:, 1] * y + p0[:, 2] * z)
+    plane = (x * x, x * y, x * z, x * d, y * y, y * z, y * d, z * z, z * d, d * d)
+    # bincount adds its weights in the order given, from 0.0, as the simplifier's loop does
+    corner = faces.reshape(-1)
+    return np.stack([np.bincount(corner, np.repeat(c, 3), minlength=len(vertices)) for c in plane], axis=1)
+
+
+def _border(n_vertices: int, faces: _I64) -> npt.NDArray[np.bool_]:
+    """Vertices on an edge of one face (the simplifier's border flag)."""
+    ends = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    key = np.sort(np.min(ends, axis=1) * n_vertices + np.max(ends, axis=1))
+    first = np.r_[True, key[1:] != key[:-1]]
+    count = np.diff(np.r_[np.flatnonzero(first), len(key)])
+    once = key[first][count == 1]
+    out = np.zeros(n_vertices, bool)
+    out[once // n_vertices] = True
+    out[once % n_vertices] = True
+    uses = np.bincount(faces.reshape(-1), minlength=n_vertices)
+    out[uses == 1] = True
+    return out
+
+
+@dataclass
+class Progressive:
+    """One simplification of a triangle mesh, cut at any face count.
+
+    ``vertices`` (V, 3) float64 and ``faces`` (F, 3) as given to the simplifier (coincident
+    vertices merged by the caller); :meth:`level` is the mesh a run of
+    ``fast_simplification.simplify(vertices, faces, target_count=...)`` returns.
+    """
+
+    vertices: _F64
+    faces: _I64
+    collapses: _I64 = field(init=False, repr=False)
+    _death: _I64 = field(init=False, repr=False)
+    _sorted_death: _I64 = field(init=False, repr=False)
+    _position: _F64 = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        import fast_simplification
+
+        self.vertices = np.ascontiguousarray(self.vertices, np.float64)
+        self.faces = np.ascontiguousarray(self.faces, np.int64)
+        _, _, collapses = fast_simplification.simplify(self.vertices, self.faces, target_count=0,
+                                                       return_collapses=True)
+        self.collapses = np.asarray(collapses, np.int64).reshape(-1, 2)
+        self._death = self._death_times()
+        self._sorted_death = np.sort(self._death)
+        self._position = self._positions()
+
+    # -- which collapse removes each face -------------------------------------------------
+
+    def _death_times(self) -> _I64:
+        """Index of the collapse that removes each face (``K`` when none does): the first
+        collapse after which two of its corners have one representative. Two vertices' chains
+        of collapses are walked together in time order until they meet."""
+        K, n = len(self.collapses), len(self.vertices)
+        when = np.full(n, K, np.int64)
+        into = np.arange(n)
+        when[self.collapses[:, 1]] = np.arange(K)
+        into[self.collapses[:, 1]] = self.collapses[:, 0]
+        death = np.full(len(self.faces), K, np.int64)
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            idx = np.arange(len(self.faces))
+            x, y = self.faces[:, i].copy(), self.faces[:, j].copy()
+            while len(idx):
+                tx, ty = when[x], when[y]
+                move_x = tx < ty
+                t = np.where(move_x, tx, ty)
+                go = t < K
+                idx, x, y, t, move_x = idx[go], x[go], y[go], t[go], move_x[go]
+                x = np.where(move_x, into[x], x)
+                y = np.where(move_x, y, into[y])
+                met = x == y
+                np.minimum.at(death, idx[met], t[met])
+                idx, x, y = idx[~met], x[~met], y[~met]
+        return death
+
+    def collapses_for(self, target_count: int) -> int:
+        """How many collapses the simplifier makes for ``target_count`` faces: it stops after
+        the first collapse that leaves at most that many (or when it can go no further)."""
+        need = len(self.faces) - int(target_count)
+        if need <= 0:
+            return 0
+        dying = int(np.searchsorted(self._sorted_death, len(self.collapses)))
+        if need > dying:
+            return len(self.collapses)
+        return int(self._sorted_death[need - 1]) + 1
+
+    # -- where each collapse puts its vertex ----------------------------------------------
+
+    def _positions(self) -> _F64:
+        """The position (K, 3) each collapse gives its surviving vertex."""
+        c0, c1 = self.collapses[:, 0], self.collapses[:, 1]
+        K = len(c0)
+        q_init = _plane_quadrics(self.vertices, self.faces)
+        border = _border(len(self.vertices), self.faces)
+        # previous collapse into c0 (same group, earlier), last collapse into c1 before t
+        order = np.lexsort((np.arange(K), c0))
+        prev0 = np.full(K, -1, np.int64)
+        same = c0[order[1:]] == c0[order[:-1]]
+        prev0[order[1:][same]] = order[:-1][same]
+        last_into = np.full(len(self.vertices), -1, np.int64)
+        last_into[c0[order]] = order  # the group's last (largest t) wins
+        prev1 = last_into[c1]
+        # each collapse is needed by the next one into its vertex, or by the one removing it
+        consumer = np.full(K, -1, np.int64)
+        consumer[prev0[prev0 >= 0]] = np.flatnonzero(prev0 >= 0)
+        consumer[prev1[prev1 >= 0]] = np.flatnonzero(prev1 >= 0)
+        need = (prev0 >= 0).astype(np.int64) + (prev1 >= 0)
+        q_after = np.empty((K, 10))
+        p_after = np.empty((K, 3))
+        wave = np.flatnonzero(need == 0)
+        with np.errstate(all="ignore"):
+            while len(wave):
+                a, b = prev0[wave], prev1[wave]
+                q0 = np.where((a >= 0)[:, None], q_after[a], q_init[c0[wave]])
+                q1 = np.where((b >= 0)[:, None], q_after[b], q_init[c1[wave]])
+                p0 = np.where((a >= 0)[:, None], p_after[a], self.vertices[c0[wave]])
+                p1 = np.where((b >= 0)[:, None], p_after[b], self.vertices[c1[wave]])
+                q = q0 + q1
+                det = _det(q, 0, 1, 2, 1, 4, 5, 2, 5, 7)
+                solve = (det != 0) & ~(border[c0[wave]] & border[c1[wave]])
+                p = np.stack([-1 / det * _det(q, 1, 2, 3, 4, 5, 6, 5, 7, 8),
+                              1 / det * _det(q, 0, 2, 3, 1, 5, 6, 2, 7, 8),
+                              -1 / det * _det(q, 0, 1, 3, 1, 4, 6, 2, 5, 8)], axis=1)
+                if not solve.all():
+                    s = ~solve
+                    qs, e1p, e2p = q[s], p0[s], p1[s]
+                    e3p = (e1p + e2p) / 2
+                    e1, e2, e3 = _vertex_error(qs, e1p), _vertex_error(qs, e2p), _vertex_error(qs, e3p)
+                    low = np.where(e3 < e2, e3, e2)  # std::min(a, b) is (b < a) ? b : a
+                    low = np.where(low < e1, low, e1)
+                    pick = p[s]
+                    pick = np.where((e1 == low)[:, None], e1p, pick)
+                    pick = np.where((e2 == low)[:, None], e2p, pick)
+                    pick = np.where((e3 == low)[:, None], e3p, pick)
+                    p[s] = pick
+                q_after[wave] = q
+                p_after[wave] = p
+                nxt = consumer[wave]
+                nxt = nxt[nxt >= 0]
+                np.subtract.at(need, nxt, 1)
+                wave = np.unique(nxt[need[nxt] == 0])
+        return p_after
+
+    # -- a level ----------------------------------------------------------------------------
+
+    def level(self, target_count: int) -> tuple[_F64, npt.NDArray[np.int32]]:
+        """Vertices (n, 3) float64 and faces (m, 3) int32 of the simplifier's result for
+        ``target_count`` faces."""
+        k = self.collapses_for(target_count)
+        c0, c1 = self.collapses[:k, 0], self.collapses[:k, 1]
+        n = len(self.vertices)
+        rep = np.arange(n)
+        rep[c1] = c0
+        while True:  # follow each vertex's collapses to its representative
+            nxt = rep[rep]
+            if np.array_equal(nxt, rep):
+                break
+            rep = nxt
+        last = np.full(n, -1, np.int64)  # the last collapse into each vertex places it
+        np.maximum.at(last, c0, np.arange(k))
+        position = self.vertices.copy()
+        moved = last >= 0
+        position[moved] = self._position[last[moved]]
+        faces = rep[self.faces[self._death >= k]]
+        used = np.zeros(n, bool)
+        used[faces.reshape(-1)] = True
+        index = np.cumsum(used) - 1
+        return position[used], index[faces].astype(np.int32)
