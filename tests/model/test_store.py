@@ -68,6 +68,26 @@ def test_prepared_model_reads_back_the_same_arrays_levels_and_exteriors(tmp_path
     assert again.lod(4096) is again.levels.lod(4096, make=lambda b: pytest.fail("decimated again"))
 
 
+def test_reading_a_prepared_model_imports_no_mesh_library(tmp_path, renderer):
+    """A prepared model is arrays: reading one needs neither trimesh, the simplifier nor numba
+    (numba's import alone took longer than the read)."""
+    import subprocess
+    import sys
+
+    obj = _write_obj(tmp_path / "mesh")  # with a material library naming a texture not there,
+    (obj.parent / "car.mtl").write_text("newmtl paint\nKd 0.8 0.2 0.2\nmap_Kd gone.png\n")  # checked on reading
+    model_from_mesh(obj, store=ModelStore(tmp_path / "store")).prepare(renderer)
+    code = ("import sys\nfrom vehicle_pose.model.library import model_from_mesh\n"
+            "from vehicle_pose.model.store import ModelStore\n"
+            "m = model_from_mesh(sys.argv[1], store=ModelStore(sys.argv[2]))\n"
+            "assert m.mesh.n_faces == 12\n"
+            "heavy = [n for n in ('trimesh', 'fast_simplification', 'numba') if n in sys.modules]\n"
+            "assert not heavy, heavy\n")
+    done = subprocess.run([sys.executable, "-c", code, str(obj), str(tmp_path / "store")], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+
+
 def test_registration_is_identical_with_and_without_the_store(tmp_path, renderer):
     store = ModelStore(tmp_path / "store")
     plain = model_from_mesh(SEDAN)

@@ -9,13 +9,13 @@ flat-shaded; the renderer turns every normal towards the camera.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from vehicle_pose.errors import EmptyMeshError, ModelError
 from vehicle_pose.model.mesh import LUMA, Mesh, Part, classify_part
@@ -92,7 +92,6 @@ def shading_geometry(
     return verts, normals, np.arange(len(verts), dtype=np.uint32).reshape(-1, 3)
 
 
-@njit(cache=True)
 def _propagate(order: npt.NDArray[np.int64], pred: npt.NDArray[np.int64], inc: npt.NDArray[np.bool_],
                n: int) -> npt.NDArray[np.bool_]:
     """Flip of each face: its parent's, changed where their shared edge runs the same way."""
@@ -102,6 +101,15 @@ def _propagate(order: npt.NDArray[np.int64], pred: npt.NDArray[np.int64], inc: n
         if p >= 0 and p < n:
             flip[i] = flip[p] ^ inc[i]
     return flip
+
+
+@functools.cache
+def _compiled_propagate() -> Callable[..., npt.NDArray[np.bool_]]:
+    """:func:`_propagate` compiled by numba, imported only when a winding is repaired (numba's
+    import alone costs 0.3 s, more than reading a prepared model)."""
+    from numba import njit
+
+    return njit(cache=True)(_propagate)
 
 
 def oriented_faces(faces: npt.NDArray[np.integer]) -> npt.NDArray[np.int64]:
@@ -151,7 +159,7 @@ def oriented_faces(faces: npt.NDArray[np.integer]) -> npt.NDArray[np.int64]:
     inc = np.zeros(F + 1, np.bool_)
     inner = p < F
     inc[nodes[inner]] = flags[np.searchsorted(pair, p[inner] * F + nodes[inner])]
-    flip = _propagate(nodes, pred.astype(np.int64), inc, F)
+    flip = _compiled_propagate()(nodes, pred.astype(np.int64), inc, F)
     out = faces.astype(np.int64)
     out[flip] = out[flip][:, ::-1]
     return out
