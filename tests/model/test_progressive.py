@@ -85,3 +85,16 @@ def test_skipping_covered_triangles_draws_what_every_triangle_draws():
     _fill_triangles(skipped, tris, tris.min(axis=1), tris.max(axis=1), shift)
     np.testing.assert_array_equal(skipped, every)
     assert 0.3 < every.mean() < 1.0
+
+
+def test_a_prepared_model_drops_its_simplification_records_and_can_still_make_a_level(sedan, renderer):
+    from vehicle_pose.model.library import VehicleModel
+
+    model = VehicleModel(sedan.info, sedan.mesh.decimated(8000))  # its own mesh: the fixture stays as it is
+    first = model.mesh.decimated(4096)
+    model.prepare(renderer, budgets=[4096])
+    assert "_progressive_cache" not in model.mesh.__dict__
+    again = model.mesh.decimated(4096)  # the simplifier runs again, to the same level
+    for p, q in zip(first.parts, again.parts, strict=True):
+        np.testing.assert_array_equal(p.vertices, q.vertices)
+        np.testing.assert_array_equal(p.faces, q.faces)

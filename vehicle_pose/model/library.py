@@ -96,6 +96,7 @@ class VehicleModel:
             mesh = self.exterior(b, renderer)
             if progress is not None:
                 progress(f"level {b}: {mesh.n_faces} faces ({time.perf_counter() - t:.1f} s)")
+        self.mesh.forget_simplification()  # every level is made: its record is dead weight
 
 
 def _complete(info: ModelInfo, mesh: Mesh, levels: Levels | None = None) -> ModelInfo:

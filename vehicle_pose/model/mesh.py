@@ -185,6 +185,11 @@ class Mesh:
                                                       np.asarray(merged.faces, np.int64))
         return found
 
+    def forget_simplification(self) -> None:
+        """Drop the parts' simplification records (for a 2M-face mesh about 100 MB); a later
+        level runs the simplifier again."""
+        self.__dict__.pop("_progressive_cache", None)
+
     def outlines(self, size: int = 256,
                  frame: tuple[npt.NDArray[np.float64], float] | None = None) -> npt.NDArray[np.bool_]:
         """Orthographic silhouettes (14, size, size) along the 6 axes and 8 diagonals.
