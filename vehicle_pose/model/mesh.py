@@ -197,7 +197,6 @@ class Mesh:
         Drawn on the CPU (no OpenGL) within ``frame`` = (centre, radius), the mesh's enclosing
         sphere by default; :meth:`outline_agreement` compares two meshes on the same frame.
         """
-
         centre, radius = self.sphere if frame is None else frame
         dirs = [np.eye(3)[i] * s for i in range(3) for s in (1.0, -1.0)]
         dirs += [np.array(d) / np.sqrt(3.0) for d in itertools.product((1.0, -1.0), repeat=3)]
