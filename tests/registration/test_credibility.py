@@ -22,3 +22,14 @@ from vehicle_pose.registration.credibility import confidence
 def test_confidence_needs_fit_uniqueness_and_region(checks, credible):
     value = confidence(checks)
     assert 0.0 <= value <= 1.0 and (value >= 0.5) == credible
+
+
+@pytest.mark.parametrize(
+    "margin,agree,expected",
+    [(0.35, 1.0, 1.0), (0.15, 1.0, 0.75), (-0.05, 1.0, 0.5), (0.35, 0.0, 0.45), (0.15, 0.0, 0.225)],
+)
+def test_a_photo_search_pose_is_credible_when_its_two_cues_agree(margin, agree, expected):
+    # The photo search's pose has no credible loss and no usable region: the cues decide.
+    checks = {"photo_search": 1.0, "margin": margin, "cues_agree": agree, "loss": 0.8, "region_iou": 0.1}
+    assert confidence(checks) == pytest.approx(expected)
+    assert (confidence(checks) >= 0.5) == (agree == 1.0)

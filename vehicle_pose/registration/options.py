@@ -264,7 +264,12 @@ class Search(_Group):
     the box grown by ``window_margin`` (None: the whole photo); the best ``refine`` are refined
     with ``refine_optimizer``. A pose whose confidence is below ``min_confidence`` is flagged
     failed (``docs/decisions/0008-confidence.md``); when it is, a ``second_pass`` searches again
-    in the foreground segmented around it.
+    in the foreground segmented around it. Where the shading does not explain the photo either
+    (the loss over its maximum above ``photo_loss``), the ``photo_search`` finds
+    the pose on the parts' colours and the edges instead: ``photo_hypotheses`` distinct views
+    of the grid at ``photo_elevations`` and ``photo_focal`` image widths, ranked on
+    ``photo_clusters`` colour classes, refined and verified on the edges
+    (``docs/decisions/0014-photo-search.md``).
     """
 
     starts: int = option(4, "without a start camera: distinct start poses screened", low=1, high=12, public=True)
@@ -285,6 +290,16 @@ class Search(_Group):
     region_fit: float = option(0.3, "view-search score under which the first region is kept", low=0.0)
     min_confidence: float = option(0.5, "confidence under which a pose found without a start camera fails",
                                    low=0.0)
+    photo_search: bool = option(True, "without a start camera: where the shading does not explain the photo, "
+                                "search on the parts' colours and the edges", public=True,
+                                flag="--no-photo-search")
+    photo_loss: float = option(0.4, "loss over its maximum above which a pose that is not credible is searched "
+                               "again by the photo search", low=0.0, high=1.0)
+    photo_hypotheses: int = option(4, "distinct hypotheses the photo search refines", low=1, high=12)
+    photo_elevations: tuple[float, ...] = option((4.0, 16.0), "elevations of the photo search's views (degrees)",
+                                                 low=-30.0, high=60.0)
+    photo_focal: float = option(8.0, "focal length of the photo search's views (image widths)", low=0.1)
+    photo_clusters: int = option(12, "colour classes of the photo search's mutual information", low=2, high=64)
 
 
 _GROUPS: dict[str, type[Any]] = {

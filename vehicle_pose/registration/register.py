@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -20,9 +21,11 @@ from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized, resized_mask
 from vehicle_pose.registration.credibility import confidence, fit_checks, loss_share
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
+from vehicle_pose.registration.hypotheses import photo_search
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
+from vehicle_pose.registration.segmentation import resegment
 from vehicle_pose.registration.structure import find_structure, structure_fit
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, make_optimizer
@@ -162,6 +165,24 @@ def register(
         start, method = searched.candidate.camera, searched.candidate.source
         spent, grabcut_seconds = searched.spent, searched.grabcut_seconds
         timings.update(searched.timings)
+        if (fg is None and options.search.photo_search and checks["loss"] > options.search.photo_loss
+                and confidence(checks) < options.search.min_confidence):
+            # Neither credible nor explained by the shading (a real photo): the pose is searched
+            # on the parts' colours and the edges instead (docs/decisions/0014-photo-search.md).
+            boxes = [rect] if rect is not None else [(0.0, 0.0, Wf - 1.0, Hf - 1.0), searched.region.box]
+            photo = photo_search(work, model, boxes, options, renderer, optimizer, progress)
+            best = photo.best
+            t = time.perf_counter()
+            again = resegment(work, model, best.camera, options.segmentation, renderer, None, max(Wf, Hf))
+            grabcut_seconds += time.perf_counter() - t
+            shaded = replace(found, foreground=found.foreground if again is None else again)
+            found, stage = structure_fit(work, model, best.structure, shaded, options, renderer), "structure"
+            levels, spent = found.levels, [*spent, found]
+            start, method = best.start.camera, best.start.source
+            checks = (photo.checks | fit_checks(work, model, found, searched.region, options.color, renderer)
+                      | {"shading_loss": checks["loss"]})
+            listed = [*listed, *photo.listed()]
+            timings["photo_search"] = photo.seconds
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
                    W0, H0, time.perf_counter() - t_start, stage)

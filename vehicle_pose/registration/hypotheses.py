@@ -1,0 +1,140 @@
+"""The search without a start camera on a photo the shading does not explain
+(``docs/decisions/0014-photo-search.md``).
+
+On a real photo the no-hint search of :mod:`~vehicle_pose.registration.nohint` screens and
+refines start poses on the invariant loss, and the loss does not explain the photo (sky and
+buildings mirrored in the paint and the glass): its minimum is elsewhere, the pose is wrong by a
+half turn or shrunk onto a panel. What holds on such a photo is coarser: the parts' colours
+(:mod:`~vehicle_pose.loss.mutual`) and the structure's edges
+(:mod:`~vehicle_pose.registration.structure`). So, as multi-hypothesis trackers do:
+
+1. **Hypotheses**: a grid of views (every ``SearchGrid`` azimuth, ``photo_elevations``, no
+   roll, a long lens of ``photo_focal`` image widths), each moved and scaled to fill each
+   candidate box (the client's box; without one the whole frame, as a claims photo is mostly
+   the car, and the region GrabCut found), scored by the material-colour mutual information
+   on the whole frame. The best ``photo_hypotheses`` distinct views are kept: the colours tell
+   the half turns apart, the edges of a view 90 or 180 degrees off can match as well.
+2. **Refinement**: each found again on the photo's edges and its box
+   (:func:`~vehicle_pose.registration.structure.find_structure`, as from a client's rough start).
+3. **Verification**: the refined hypothesis with the lowest structure objective (the chamfer and
+   the box term) wins; the colours, which ranked the hypotheses before the edges refined them,
+   are the second, independent cue. The result is credible when both cues name the same pose
+   (``cues_agree``) and the edges prefer it by a ``margin`` over the best hypothesis at least
+   :data:`VERIFY_APART` degrees away.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.loss.mutual import MaterialInformation
+from vehicle_pose.metrics import rotation_error
+from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.registration.fit import Progress
+from vehicle_pose.registration.options import RegistrationOptions
+from vehicle_pose.registration.structure import Structure, find_structure
+from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.search.optimize import Optimizer
+from vehicle_pose.search.views import Box, Candidate, SearchGrid, distinct, fit_to_box, view_camera
+
+__all__ = ["Hypothesis", "PhotoSearch", "photo_search", "VERIFY_APART"]
+
+VERIFY_APART = 15.0
+"""Degrees apart at which two refined hypotheses are two poses rather than one found twice (the
+no-hint search's rivals are as far apart, ``docs/decisions/0008-confidence.md``)."""
+
+
+@dataclass
+class Hypothesis:
+    """One refined hypothesis: the view it started from, its box, its structure search and
+    the start's colour information (its rank among the views)."""
+
+    start: Candidate
+    box: Box
+    structure: Structure
+    information: float
+
+    @property
+    def camera(self) -> Camera:
+        return self.structure.camera
+
+    @property
+    def objective(self) -> float:
+        return self.structure.levels[-1].objective
+
+
+@dataclass
+class PhotoSearch:
+    """The hypotheses, best first, and the time spent."""
+
+    hypotheses: list[Hypothesis]
+    seconds: float
+
+    @property
+    def best(self) -> Hypothesis:
+        return self.hypotheses[0]
+
+    @property
+    def checks(self) -> dict[str, float]:
+        """``margin``: the winner's relative lead on the structure objective over the best
+        hypothesis at least :data:`VERIFY_APART` degrees away (1 when there is none);
+        ``cues_agree``: 1 when the winner is (within :data:`VERIFY_APART` degrees) the hypothesis
+        the colours ranked first, else 0; ``photo_search``: 1 (the confidence reads these)."""
+        best = self.best
+        rivals = [h.objective for h in self.hypotheses[1:]
+                  if rotation_error(h.camera.R, best.camera.R) >= VERIFY_APART]
+        margin = (min(rivals) - best.objective) / max(abs(min(rivals)), 1e-9) if rivals else 1.0
+        first = max(self.hypotheses, key=lambda h: h.information)
+        agree = first is best or rotation_error(first.camera.R, best.camera.R) < VERIFY_APART
+        return {"margin": margin, "cues_agree": float(agree), "photo_search": 1.0}
+
+    def listed(self) -> list[dict[str, Any]]:
+        """The hypotheses as the result reports them."""
+        return [h.start.to_dict() | {"box": list(h.box), "information": h.information,
+                                     "structure_objective": h.objective} for h in self.hypotheses]
+
+
+def photo_search(
+    work: npt.NDArray[np.uint8],
+    model: VehicleModel,
+    boxes: list[Box],
+    options: RegistrationOptions,
+    renderer: Renderer,
+    optimizer: Optimizer,
+    progress: Progress | None = None,
+) -> PhotoSearch:
+    """Hypotheses on the grid fitted to each of ``boxes``, refined on the edges, verified (the
+    module docstring); ``work`` is the working photo, the boxes in its pixels."""
+    t0 = time.perf_counter()
+    Hf, Wf = work.shape[:2]
+    search = options.search
+    mesh = model.exterior(options.pyramid.min_faces, renderer)
+    score = MaterialInformation(work, mesh, renderer, size=options.structure.structure_size,
+                                clusters=search.photo_clusters)
+    points, centre = model.mesh.sample_points(600), model.mesh.sphere[0]
+    cands = []
+    for k, box in enumerate(boxes):
+        for az in SearchGrid().azimuths:
+            for el in search.photo_elevations:
+                cam = view_camera(model, az, el, 0.0, box, Wf, Hf, search.photo_focal * Wf)
+                cam = fit_to_box(cam, points, centre, box, rounds=4, clip=True)
+                information = score(cam)
+                cands.append(Candidate(cam, "photo-search", score=-information,
+                                       detail={"azimuth": az, "elevation": el, "box_index": float(k),
+                                               "information": information}))
+    hypotheses = []
+    chosen = distinct(cands, search.photo_hypotheses)
+    for k, cand in enumerate(chosen):
+        if progress is not None:
+            progress(f"photo search: hypothesis {k + 1}/{len(chosen)}", 0, float("nan"))
+        box = boxes[int(cand.detail["box_index"])]
+        found = find_structure(work, model, cand.camera, box, options, renderer, optimizer, progress)
+        hypotheses.append(Hypothesis(cand, box, found, cand.detail["information"]))
+    hypotheses.sort(key=lambda h: h.objective)
+    return PhotoSearch(hypotheses, time.perf_counter() - t0)
