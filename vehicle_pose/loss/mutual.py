@@ -51,7 +51,8 @@ def colour_classes(rgb: npt.NDArray[np.uint8], clusters: int) -> npt.NDArray[np.
     cv2.setRNGSeed(_SEED)
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.5)
     _, labels, _ = cv2.kmeans(lab, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
-    return labels.reshape(rgb.shape[:2]).astype(np.int32)
+    out: npt.NDArray[np.int32] = np.asarray(labels, np.int32).reshape(rgb.shape[:2])
+    return out
 
 
 def material_codes(frame: Frame, shades: int = 1) -> npt.NDArray[np.int32]:

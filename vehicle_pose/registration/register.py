@@ -170,8 +170,8 @@ def register(
             # Neither credible nor explained by the shading (a real photo): the pose is searched
             # on the parts' colours and the edges instead (docs/decisions/0014-photo-search.md).
             boxes = [rect] if rect is not None else [(0.0, 0.0, Wf - 1.0, Hf - 1.0), searched.region.box]
-            photo = photo_search(work, model, boxes, options, renderer, optimizer, progress)
-            best = photo.best
+            photo_found = photo_search(work, model, boxes, options, renderer, optimizer, progress)
+            best = photo_found.best
             t = time.perf_counter()
             again = resegment(work, model, best.camera, options.segmentation, renderer, None, max(Wf, Hf))
             grabcut_seconds += time.perf_counter() - t
@@ -179,10 +179,10 @@ def register(
             found, stage = structure_fit(work, model, best.structure, shaded, options, renderer), "structure"
             levels, spent = found.levels, [*spent, found]
             start, method = best.start.camera, best.start.source
-            checks = (photo.checks | fit_checks(work, model, found, searched.region, options.color, renderer)
+            checks = (photo_found.checks | fit_checks(work, model, found, searched.region, options.color, renderer)
                       | {"shading_loss": checks["loss"]})
-            listed = [*listed, *photo.listed()]
-            timings["photo_search"] = photo.seconds
+            listed = [*listed, *photo_found.listed()]
+            timings["photo_search"] = photo_found.seconds
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
                    W0, H0, time.perf_counter() - t_start, stage)
