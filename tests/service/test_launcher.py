@@ -115,9 +115,9 @@ def test_a_whole_worker_killed_mid_job_is_taken_back_within_its_lease(tmp_path, 
             killed = time.monotonic()
             for pid in [workers[0], *pool]:
                 os.kill(pid, signal.SIGKILL)
-            # The launcher starts a new worker; its reaper finds the lease run out.
-            back = wait_for(c, job_id, until=("queued", "succeeded", "failed"), timeout=60)
-            assert back["status"] == "queued" and back["attempts"] == 1, back
+            # The launcher starts a new worker; its reaper finds the lease run out and sends the
+            # job again. (The job is queued again only for the moment the warm worker takes to
+            # pick it up, too short to be polled: the second attempt and the log say it.)
             body = wait_for(c, job_id, timeout=180)
         assert body["status"] == "succeeded" and body["attempts"] == 2, body
         assert time.monotonic() - killed < 120, "taken back by the visibility timeout, not by the lease"
