@@ -52,13 +52,16 @@ no-hint search's rivals are as far apart, ``docs/decisions/0008-confidence.md``)
 
 @dataclass
 class Hypothesis:
-    """One refined hypothesis: the view it started from, its box, its structure search and
-    the start's colour information (its rank among the views)."""
+    """One refined hypothesis: the view it started from (its colour information in the
+    detail), its box and its structure search."""
 
     start: Candidate
     box: Box
     structure: Structure
-    information: float
+
+    @property
+    def information(self) -> float:
+        return self.start.detail["information"]
 
     @property
     def camera(self) -> Camera:
@@ -96,8 +99,8 @@ class PhotoSearch:
 
     def listed(self) -> list[dict[str, Any]]:
         """The hypotheses as the result reports them."""
-        return [h.start.to_dict() | {"box": list(h.box), "information": h.information,
-                                     "structure_objective": h.objective} for h in self.hypotheses]
+        return [h.start.to_dict() | {"box": list(h.box), "structure_objective": h.objective}
+                for h in self.hypotheses]
 
 
 def photo_search(
@@ -135,6 +138,6 @@ def photo_search(
             progress(f"photo search: hypothesis {k + 1}/{len(chosen)}", 0, float("nan"))
         box = boxes[int(cand.detail["box_index"])]
         found = find_structure(work, model, cand.camera, box, options, renderer, optimizer, progress)
-        hypotheses.append(Hypothesis(cand, box, found, cand.detail["information"]))
+        hypotheses.append(Hypothesis(cand, box, found))
     hypotheses.sort(key=lambda h: h.objective)
     return PhotoSearch(hypotheses, time.perf_counter() - t0)
