@@ -8,10 +8,14 @@ import pytest
 from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.registration.credibility import confidence
-from vehicle_pose.registration.hypotheses import photo_search
-from vehicle_pose.render.synth import synthesize_hazard
+from vehicle_pose.registration.fit import Fit
+from vehicle_pose.registration.hypotheses import photo_pose, photo_search
+from vehicle_pose.registration.result import LevelReport
+from vehicle_pose.registration.structure import edge_costs
+from vehicle_pose.render.synth import synthesize, synthesize_hazard
 from vehicle_pose.search.optimize import make_optimizer
-from vehicle_pose.search.views import view_camera
+from vehicle_pose.search.views import fit_to_box, view_camera
+from vehicle_pose.segment.region import VehicleRegion
 
 
 def _filling(sedan, azimuth: float):
@@ -47,21 +51,73 @@ def test_the_true_view_wins_over_its_twin_on_mirroring_paint(sedan, renderer):
 def test_a_photo_the_shading_cannot_explain_is_searched_on_colours_and_edges(sedan, renderer):
     """No hint, paint that mirrors its surroundings, the car filling the frame: the shading
     search's pose is not credible and (with the gate lowered to any loss) not explained by the
-    shading, so the photo search runs and its pose, hypotheses, checks and time are reported;
-    its confidence follows its two cues.
+    shading, so the photo search runs; its hypotheses, both edge costs and its time are
+    reported, and the pose with the lower edge cost is the result. A photo pose's confidence
+    follows its two cues.
     (On this synthetic photo the photo search does not find the pose: the mirrored glass has no
     colour of its own; ``docs/decisions/0014-photo-search.md``.)"""
     photo, _, _ = synthesize_hazard(sedan.mesh, _filling(sedan, 120.0), "mirror-paint", renderer=renderer, seed=7)
     result = register(photo, sedan, renderer=renderer,
                       options=RegistrationOptions.from_flat(photo_loss=0.0, **_FAST))
-    assert result.start_method == "photo-search" and result.pose_stage == "structure"
-    assert "photo_search" in result.timings and result.checks["photo_search"] == 1.0
-    assert 0.0 < result.checks["shading_loss"] <= 0.4
+    assert "photo_search" in result.timings
+    replaced = result.checks["photo_edges"] < result.checks["shading_edges"]
+    assert (result.start_method == "photo-search") == replaced == (result.pose_stage == "structure")
     assert result.confidence == pytest.approx(confidence(result.checks))
-    assert result.failed == (result.confidence < 0.5) and (result.checks["cues_agree"] == 1.0 or result.failed)
+    if replaced:
+        assert result.checks["photo_search"] == 1.0 and 0.0 < result.checks["shading_loss"]
+        assert result.failed == (result.confidence < 0.5) and (result.checks["cues_agree"] == 1.0 or result.failed)
+    else:
+        assert "photo_search" not in result.checks and result.failed
     data = result.to_dict()
     hypotheses = [c for c in data["start"]["candidates"] if c["source"] == "photo-search"]
     assert len(hypotheses) == 3 and all("structure_objective" in c for c in hypotheses)
     without = register(photo, sedan, renderer=renderer,
                        options=RegistrationOptions.from_flat(photo_loss=0.0, photo_search=False, **_FAST))
     assert without.start_method != "photo-search" and "photo_search" not in without.timings
+
+
+def _shrunk(sedan, camera):
+    """``camera`` with the model moved and scaled into the middle third of the frame: the pose a
+    shading search shrinks onto a panel of a real photo."""
+    W, H = camera.width, camera.height
+    points, centre = sedan.mesh.sample_points(600), sedan.mesh.sphere[0]
+    return fit_to_box(camera, points, centre, (W / 3, H / 3, 2 * W / 3, 2 * H / 3), rounds=4, clip=True)
+
+
+def _shaded(camera, shape):
+    """A shading fit that ended at ``camera`` (its loss, as far as the photo pose reads it, 0.5)."""
+    level = LevelReport(camera.width, camera.height, 8192, 0, 0, 0.5, 0.0, 0.5)
+    return Fit(camera, [level], np.ones(shape, bool), 0.0)
+
+
+def test_the_edges_score_the_true_pose_below_a_shrunk_one_and_its_twin(sedan, renderer):
+    """The one footing on which a photo pose and a shading pose are compared: the chamfer alone,
+    with no box, is lowest at the true pose."""
+    truth = _filling(sedan, 150.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)
+    twin = view_camera(sedan, 330.0, 10.0, 0.0, (12.0, 20.0, 308.0, 220.0), 320, 240, 3.0 * 320)
+    at_truth, shrunk, turned = edge_costs(photo, sedan, [truth, _shrunk(sedan, truth), twin],
+                                          RegistrationOptions(), renderer)
+    assert at_truth < 0.5 * shrunk and at_truth < 0.5 * turned
+
+
+@pytest.mark.slow
+def test_the_photo_pose_replaces_a_shrunk_shading_pose_and_not_a_right_one(sedan, renderer):
+    """A plain photo of a car filling the frame: the photo search finds its view. It replaces a
+    shading pose shrunk inside the car (within 5 degrees of the truth, both edge costs
+    reported), and leaves the true pose where it is."""
+    truth = _filling(sedan, 150.0)
+    photo, mask = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)
+    options = RegistrationOptions.from_flat(**_FAST)
+    optimizer = make_optimizer(options.optimizer)
+    region = VehicleRegion.from_mask(mask)
+    checks = {"loss": 0.5, "margin": 0.0}
+    replaced = photo_pose(photo, sedan, None, region, _shaded(_shrunk(sedan, truth), mask.shape), checks, options,
+                          renderer, optimizer)
+    assert replaced.fit is not None and rotation_error(replaced.fit.camera.R, truth.R) < 5.0
+    assert replaced.checks["photo_edges"] < replaced.checks["shading_edges"]
+    assert replaced.checks["shading_loss"] == 0.5 and replaced.checks["photo_search"] == 1.0
+    assert len(replaced.listed) == 3 and replaced.seconds > 0.0
+    kept = photo_pose(photo, sedan, None, region, _shaded(truth, mask.shape), checks, options, renderer, optimizer)
+    assert kept.fit is None and kept.checks["photo_edges"] >= kept.checks["shading_edges"]
+    assert kept.checks["loss"] == 0.5 and "photo_search" not in kept.checks and len(kept.listed) == 3

@@ -21,12 +21,18 @@ half turn or shrunk onto a panel. What holds on such a photo is coarser: the par
    are the second, independent cue. The result is credible when both cues name the same pose
    (``cues_agree``) and the edges prefer it by a ``margin`` over the best hypothesis at least
    :data:`VERIFY_APART` degrees away.
+4. **Against the shading pose** (:func:`photo_pose`): the winner was found in a box, the
+   shading search's pose was not, so their structure objectives do not compare. Both are
+   scored by the chamfer alone (no box, no mask), and the winner replaces the shading pose only
+   where it is lower: a shading pose shrunk onto a panel of a real photo scores 0.3-0.6 there,
+   a right one on a render 0.07-0.11, the photo search's poses 0.13-0.46
+   (``docs/decisions/0015-one-footing.md``).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -36,14 +42,17 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.loss.mutual import MaterialInformation
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.registration.fit import Progress
+from vehicle_pose.registration.credibility import fit_checks
+from vehicle_pose.registration.fit import Fit, Progress
 from vehicle_pose.registration.options import RegistrationOptions
-from vehicle_pose.registration.structure import Structure, find_structure
+from vehicle_pose.registration.segmentation import resegment
+from vehicle_pose.registration.structure import Structure, edge_costs, find_structure, structure_fit
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.views import Box, Candidate, SearchGrid, distinct, fit_to_box, view_camera
+from vehicle_pose.segment.region import VehicleRegion
 
-__all__ = ["Hypothesis", "PhotoSearch", "photo_search", "VERIFY_APART"]
+__all__ = ["Hypothesis", "PhotoPose", "PhotoSearch", "photo_pose", "photo_search", "VERIFY_APART"]
 
 VERIFY_APART = 15.0
 """Degrees apart at which two refined hypotheses are two poses rather than one found twice (the
@@ -141,3 +150,45 @@ def photo_search(
         hypotheses.append(Hypothesis(cand, box, found))
     hypotheses.sort(key=lambda h: h.objective)
     return PhotoSearch(hypotheses, time.perf_counter() - t0)
+
+
+@dataclass
+class PhotoPose:
+    """What the photo search does to a no-hint registration: ``fit``, its pose as a fit (None
+    where the shading pose is kept), ``start``, the winning hypothesis's start view,
+    ``checks``, the checks of the pose kept (both edge costs added), ``listed``, the hypotheses
+    tried, and the time spent searching and segmenting again."""
+
+    fit: Fit | None
+    start: Candidate
+    checks: dict[str, float]
+    listed: list[dict[str, Any]]
+    seconds: float
+    grabcut_seconds: float
+
+
+def photo_pose(work: npt.NDArray[np.uint8], model: VehicleModel, rect: Box | None, region: VehicleRegion,
+               shaded: Fit, checks: dict[str, float], options: RegistrationOptions, renderer: Renderer,
+               optimizer: Optimizer, progress: Progress | None = None) -> PhotoPose:
+    """The photo search in the client's box ``rect`` (otherwise the whole frame and the box of
+    the ``region`` found), and the verification against the shading search's pose ``shaded``
+    (its checks ``checks``): the winner replaces it only when the model's edges fit the photo's
+    better there (:func:`~vehicle_pose.registration.structure.edge_costs`, no box and no mask:
+    step 4 of the module docstring). The pose that replaces it is reported with the shading
+    fit's mask segmented again around it, and its checks (``shading_loss`` the loss it replaced)."""
+    Hf, Wf = work.shape[:2]
+    boxes = [rect] if rect is not None else [(0.0, 0.0, Wf - 1.0, Hf - 1.0), region.box]
+    found = photo_search(work, model, boxes, options, renderer, optimizer, progress)
+    best = found.best
+    shading_edges, photo_edges = edge_costs(work, model, [shaded.camera, best.camera], options, renderer)
+    edges = {"shading_edges": shading_edges, "photo_edges": photo_edges}
+    if photo_edges >= shading_edges:
+        return PhotoPose(None, best.start, checks | edges, found.listed(), found.seconds, 0.0)
+    t = time.perf_counter()
+    again = resegment(work, model, best.camera, options.segmentation, renderer, None, max(Wf, Hf))
+    grabcut = time.perf_counter() - t
+    masked = replace(shaded, foreground=shaded.foreground if again is None else again)
+    fitted = structure_fit(work, model, best.structure, masked, options, renderer)
+    kept = (found.checks | fit_checks(work, model, fitted, region, options.color, renderer)
+            | {"shading_loss": checks["loss"]} | edges)
+    return PhotoPose(fitted, best.start, kept, found.listed(), found.seconds, grabcut)

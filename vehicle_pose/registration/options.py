@@ -269,7 +269,8 @@ class Search(_Group):
     the pose on the parts' colours and the edges instead: ``photo_hypotheses`` distinct views
     of the grid at ``photo_elevations`` and ``photo_focal`` image widths, ranked on
     ``photo_clusters`` colour classes, refined and verified on the edges
-    (``docs/decisions/0014-photo-search.md``).
+    (``docs/decisions/0014-photo-search.md``); its pose replaces the shading pose where the
+    model's edges fit the photo's better (``docs/decisions/0015-one-footing.md``).
     """
 
     starts: int = option(4, "without a start camera: distinct start poses screened", low=1, high=12, public=True)
@@ -293,8 +294,9 @@ class Search(_Group):
     photo_search: bool = option(True, "without a start camera: where the shading does not explain the photo, "
                                 "search on the parts' colours and the edges", public=True,
                                 flag="--no-photo-search")
-    photo_loss: float = option(0.4, "loss over its maximum above which a pose that is not credible is searched "
-                               "again by the photo search", low=0.0, high=1.0)
+    photo_loss: float = option(0.2, "loss over its maximum above which a pose that is not credible is searched "
+                               "again by the photo search (0.2: where the confidence's fit score is 0)",
+                               low=0.0, high=1.0)
     photo_hypotheses: int = option(4, "distinct hypotheses the photo search refines", low=1, high=12)
     photo_elevations: tuple[float, ...] = option((4.0, 16.0), "elevations of the photo search's views (degrees)",
                                                  low=-30.0, high=60.0)

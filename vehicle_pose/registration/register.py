@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -21,11 +20,10 @@ from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized, resized_mask
 from vehicle_pose.registration.credibility import confidence, fit_checks, loss_share
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
-from vehicle_pose.registration.hypotheses import photo_search
+from vehicle_pose.registration.hypotheses import photo_pose
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
-from vehicle_pose.registration.segmentation import resegment
 from vehicle_pose.registration.structure import find_structure, structure_fit
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, make_optimizer
@@ -168,21 +166,16 @@ def register(
         if (fg is None and options.search.photo_search and checks["loss"] > options.search.photo_loss
                 and confidence(checks) < options.search.min_confidence):
             # Neither credible nor explained by the shading (a real photo): the pose is searched
-            # on the parts' colours and the edges instead (docs/decisions/0014-photo-search.md).
-            boxes = [rect] if rect is not None else [(0.0, 0.0, Wf - 1.0, Hf - 1.0), searched.region.box]
-            photo_found = photo_search(work, model, boxes, options, renderer, optimizer, progress)
-            best = photo_found.best
-            t = time.perf_counter()
-            again = resegment(work, model, best.camera, options.segmentation, renderer, None, max(Wf, Hf))
-            grabcut_seconds += time.perf_counter() - t
-            shaded = replace(found, foreground=found.foreground if again is None else again)
-            found, stage = structure_fit(work, model, best.structure, shaded, options, renderer), "structure"
-            levels, spent = found.levels, [*spent, found]
-            start, method = best.start.camera, best.start.source
-            checks = (photo_found.checks | fit_checks(work, model, found, searched.region, options.color, renderer)
-                      | {"shading_loss": checks["loss"]})
-            listed = [*listed, *photo_found.listed()]
-            timings["photo_search"] = photo_found.seconds
+            # on the parts' colours and the edges instead, and kept where its edges fit better
+            # than the shading pose's (docs/decisions/0014-photo-search.md, 0015-one-footing.md).
+            outcome = photo_pose(work, model, rect, searched.region, found, checks, options, renderer, optimizer,
+                                 progress)
+            listed, timings["photo_search"] = [*listed, *outcome.listed], outcome.seconds
+            grabcut_seconds += outcome.grabcut_seconds
+            checks = outcome.checks
+            if outcome.fit is not None:
+                found, stage, start, method = outcome.fit, "structure", outcome.start.camera, outcome.start.source
+                levels, spent = found.levels, [*spent, found]
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
                    W0, H0, time.perf_counter() - t_start, stage)

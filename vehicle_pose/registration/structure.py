@@ -53,7 +53,9 @@ from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import CrossEntropy, Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow, fit_to_box
 
-__all__ = ["BoxAnchoredParams", "Structure", "StructureCost", "find_structure", "structure_fit", "loss_at"]
+__all__ = [
+    "BoxAnchoredParams", "Structure", "StructureCost", "edge_costs", "find_structure", "structure_fit", "loss_at",
+]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -146,6 +148,22 @@ class StructureCost:
         if self.progress is not None and self.count % 20 == 0:
             self.progress(self.stage, self.count, value)
         return value
+
+
+def edge_costs(work: npt.NDArray[np.uint8], model: VehicleModel, cameras: list[Camera], options: RegistrationOptions,
+               renderer: Renderer) -> list[float]:
+    """The chamfer of the model's edges against the photo's for each of ``cameras`` (for the
+    working photo ``work``), as the free refinement of :func:`find_structure` scores it but
+    without a box: at ``structure_size``, truncated at ``structure_tau``. No box and no mask
+    enter it, so poses found in different ways (the shading search's, the photo search's) are
+    compared on one footing (``docs/decisions/0015-one-footing.md``)."""
+    st = options.structure
+    Hf, Wf = work.shape[:2]
+    s = min(1.0, st.structure_size / max(Wf, Hf))
+    w, h = max(8, round(Wf * s)), max(8, round(Hf * s))
+    cost = StructureCost(resized(work, w, h), model.exterior(options.pyramid.min_faces, renderer), renderer, options,
+                         tau=st.structure_tau)
+    return [cost(cam.scaled(w, h)) for cam in cameras]
 
 
 def find_structure(
