@@ -1,6 +1,6 @@
-"""Real photos: rotation error against human pose annotations, from a start camera or no hint.
+"""Real photos: rotation error against human pose annotations, from a start camera, a box alone or no hint.
 
-Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|none] [--cases N]
+Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|gt|box|none] [--cases N]
        [--shared ../shared/real] [--option KEY=VALUE ...] [--tag TAG]
 
 The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were
@@ -121,7 +121,9 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         R_gt = np.asarray(gt["R"], float)
         bbox = json.loads((case / "init.json").read_text())["bbox"]
         init, box = None, None
-        if start_name != "none":
+        if start_name == "box":
+            box = bbox  # the client's box alone: the search without a start camera, in the box
+        elif start_name != "none":
             hint = json.loads((case / ("init.json" if start_name == "gt" else start_name)).read_text())
             init = Camera.from_dict(hint)
             box = hint.get("bbox") if use_box else None
@@ -169,7 +171,7 @@ def main() -> None:
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "real")
     ap.add_argument("--start", default="init.json",
                     help="start file of each case (init.json, init_box.json), gt (init.json turned to the "
-                    "annotated rotation) or none")
+                    "annotated rotation), box (init.json's box alone, no start camera) or none")
     ap.add_argument("--cases", type=int, default=None, help="only the first N cases")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a RegistrationOptions field, e.g. loss=invariant (repeatable)")

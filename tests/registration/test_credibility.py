@@ -25,11 +25,15 @@ def test_confidence_needs_fit_uniqueness_and_region(checks, credible):
 
 
 @pytest.mark.parametrize(
-    "margin,agree,expected",
-    [(0.35, 1.0, 1.0), (0.15, 1.0, 0.75), (-0.05, 1.0, 0.5), (0.35, 0.0, 0.45), (0.15, 0.0, 0.225)],
+    "margin,agree,lead,expected",
+    [(0.35, 1.0, 0.4, 1.0), (0.15, 1.0, 0.4, 0.75), (-0.05, 1.0, 0.4, 0.5), (0.35, 0.0, 0.4, 0.45),
+     (0.15, 0.0, 0.4, 0.225), (0.35, 1.0, 0.2, 0.5), (0.35, 1.0, 0.14, 0.3), (0.35, 1.0, None, 0.0)],
 )
-def test_a_photo_search_pose_is_credible_when_its_two_cues_agree(margin, agree, expected):
-    # The photo search's pose has no credible loss and no usable region: the cues decide.
+def test_a_photo_search_pose_is_credible_when_its_two_cues_agree_on_a_vehicle(margin, agree, lead, expected):
+    # The photo search's pose has no credible loss and no usable region: the cues decide, as
+    # far as the edges show a vehicle at all (a lead over the grid's median view).
     checks = {"photo_search": 1.0, "margin": margin, "cues_agree": agree, "loss": 0.8, "region_iou": 0.1}
+    if lead is not None:
+        checks["edge_lead"] = lead
     assert confidence(checks) == pytest.approx(expected)
-    assert (confidence(checks) >= 0.5) == (agree == 1.0)
+    assert (confidence(checks) >= 0.5) == (agree == 1.0 and lead is not None and lead >= 0.2)

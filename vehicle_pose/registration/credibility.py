@@ -33,12 +33,16 @@ def confidence(checks: dict[str, float]) -> float:
     A pose of the photo search (``photo_search`` in the checks,
     ``docs/decisions/0014-photo-search.md``) has no credible loss to judge: there the two cues
     decide. When the colours and the edges name the same pose (``cues_agree``) the confidence is
-    0.5 + 0.5 x the uniqueness, else 0.45 x it (always failed).
+    0.5 + 0.5 x the uniqueness, else 0.45 x it (always failed); and it is at most the evidence
+    of a vehicle, the chamfer's lead over the median view of the grid (``edge_lead``), 0.5 at
+    0.2 and 1 from 0.35 (``docs/decisions/0015-one-footing.md``).
     """
     unique = (checks.get("margin", 0.0) + 0.05) / 0.40
     if checks.get("photo_search"):
         u = float(np.clip(unique, 0.0, 1.0))
-        return 0.5 + 0.5 * u if checks.get("cues_agree") else 0.45 * u
+        cues = 0.5 + 0.5 * u if checks.get("cues_agree") else 0.45 * u
+        evidence = (checks.get("edge_lead", 0.0) - 0.05) / 0.30
+        return float(np.clip(min(cues, evidence), 0.0, 1.0))
     fit = (0.20 - checks.get("loss", 1.0)) / 0.10
     region = (checks.get("region_iou", 0.0) - 0.5) / 0.40
     return float(np.clip(min(fit, unique, region), 0.0, 1.0))

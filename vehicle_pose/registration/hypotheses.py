@@ -26,7 +26,9 @@ half turn or shrunk onto a panel. What holds on such a photo is coarser: the par
    scored by the chamfer alone (no box, no mask), and the winner replaces the shading pose only
    where it is lower: a shading pose shrunk onto a panel of a real photo scores 0.3-0.6 there,
    a right one on a render 0.07-0.11, the photo search's poses 0.13-0.46
-   (``docs/decisions/0015-one-footing.md``).
+   (``docs/decisions/0015-one-footing.md``). A pose that replaces the shading pose also needs
+   evidence of a vehicle: its chamfer's lead over the median view of the grid in its box
+   (``edge_lead``; a photo of noise has edges everywhere, and every outline fits it alike).
 """
 
 from __future__ import annotations
@@ -83,10 +85,11 @@ class Hypothesis:
 
 @dataclass
 class PhotoSearch:
-    """The hypotheses, best first, and the time spent."""
+    """The hypotheses, best first, the time spent, and every view of the grid as scored."""
 
     hypotheses: list[Hypothesis]
     seconds: float
+    views: list[Candidate]
 
     @property
     def best(self) -> Hypothesis:
@@ -149,7 +152,7 @@ def photo_search(
         found = find_structure(work, model, cand.camera, box, options, renderer, optimizer, progress)
         hypotheses.append(Hypothesis(cand, box, found))
     hypotheses.sort(key=lambda h: h.objective)
-    return PhotoSearch(hypotheses, time.perf_counter() - t0)
+    return PhotoSearch(hypotheses, time.perf_counter() - t0, cands)
 
 
 @dataclass
@@ -184,6 +187,13 @@ def photo_pose(work: npt.NDArray[np.uint8], model: VehicleModel, rect: Box | Non
     edges = {"shading_edges": shading_edges, "photo_edges": photo_edges}
     if photo_edges >= shading_edges:
         return PhotoPose(None, best.start, checks | edges, found.listed(), found.seconds, 0.0)
+    # The evidence that there is a vehicle at all: how much closer the winner's edges lie than
+    # those of a typical view of the grid in the same box (a photo of noise, edges everywhere,
+    # fits every outline alike).
+    box_index = best.start.detail["box_index"]
+    grid = [v.camera for v in found.views if v.detail["box_index"] == box_index]
+    edges["edge_lead"] = 1.0 - photo_edges / max(float(np.median(edge_costs(work, model, grid, options, renderer))),
+                                                  1e-9)
     t = time.perf_counter()
     again = resegment(work, model, best.camera, options.segmentation, renderer, None, max(Wf, Hf))
     grabcut = time.perf_counter() - t
