@@ -117,7 +117,22 @@ def test_the_photo_pose_replaces_a_shrunk_shading_pose_and_not_a_right_one(sedan
     assert replaced.fit is not None and rotation_error(replaced.fit.camera.R, truth.R) < 5.0
     assert replaced.checks["photo_edges"] < replaced.checks["shading_edges"]
     assert replaced.checks["shading_loss"] == 0.5 and replaced.checks["photo_search"] == 1.0
+    assert replaced.checks["edge_lead"] > 0.35  # a vehicle: far closer than the grid's median view
     assert len(replaced.listed) == 3 and replaced.seconds > 0.0
     kept = photo_pose(photo, sedan, None, region, _shaded(truth, mask.shape), checks, options, renderer, optimizer)
     assert kept.fit is None and kept.checks["photo_edges"] >= kept.checks["shading_edges"]
     assert kept.checks["loss"] == 0.5 and "photo_search" not in kept.checks and len(kept.listed) == 3
+
+
+@pytest.mark.slow
+def test_a_photo_of_noise_is_not_a_vehicle_however_the_photo_search_fits_it(sedan, renderer):
+    """Coloured noise has edges everywhere: every outline fits them alike, and the photo search's
+    pose may still beat the shading pose's chamfer and have its two cues agree by chance. Its
+    lead over the grid's median view is small, so the pose is flagged."""
+    rng = np.random.default_rng(4)
+    photo = (rng.random((60, 80, 3)) * 255).astype(np.uint8).repeat(4, 0).repeat(4, 1)
+    result = register(photo, sedan, renderer=renderer,
+                      options=RegistrationOptions.from_flat(starts=2, refine=1, max_evaluations=100))
+    assert result.failed and result.confidence < 0.5
+    if result.start_method == "photo-search":
+        assert result.checks["edge_lead"] < 0.2
