@@ -11,7 +11,7 @@ from vehicle_pose.registration.credibility import confidence
 from vehicle_pose.registration.fit import Fit
 from vehicle_pose.registration.hypotheses import photo_pose, photo_search
 from vehicle_pose.registration.result import LevelReport
-from vehicle_pose.registration.structure import edge_costs
+from vehicle_pose.registration.structure import EdgeFit
 from vehicle_pose.render.synth import synthesize, synthesize_hazard
 from vehicle_pose.search.optimize import make_optimizer
 from vehicle_pose.search.views import fit_to_box, view_camera
@@ -96,8 +96,8 @@ def test_the_edges_score_the_true_pose_below_a_shrunk_one_and_its_twin(sedan, re
     truth = _filling(sedan, 150.0)
     photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)
     twin = view_camera(sedan, 330.0, 10.0, 0.0, (12.0, 20.0, 308.0, 220.0), 320, 240, 3.0 * 320)
-    at_truth, shrunk, turned = edge_costs(photo, sedan, [truth, _shrunk(sedan, truth), twin],
-                                          RegistrationOptions(), renderer)
+    at_truth, shrunk, turned = EdgeFit(photo, sedan, RegistrationOptions(), renderer)(
+        [truth, _shrunk(sedan, truth), twin])
     assert at_truth < 0.5 * shrunk and at_truth < 0.5 * turned
 
 

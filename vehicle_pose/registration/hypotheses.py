@@ -48,7 +48,7 @@ from vehicle_pose.registration.credibility import fit_checks
 from vehicle_pose.registration.fit import Fit, Progress
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.segmentation import resegment
-from vehicle_pose.registration.structure import Structure, edge_costs, find_structure, structure_fit
+from vehicle_pose.registration.structure import EdgeFit, Structure, find_structure, structure_fit
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.views import Box, Candidate, SearchGrid, distinct, fit_to_box, view_camera
@@ -176,14 +176,15 @@ def photo_pose(work: npt.NDArray[np.uint8], model: VehicleModel, rect: Box | Non
     """The photo search in the client's box ``rect`` (otherwise the whole frame and the box of
     the ``region`` found), and the verification against the shading search's pose ``shaded``
     (its checks ``checks``): the winner replaces it only when the model's edges fit the photo's
-    better there (:func:`~vehicle_pose.registration.structure.edge_costs`, no box and no mask:
+    better there (:class:`~vehicle_pose.registration.structure.EdgeFit`, no box and no mask:
     step 4 of the module docstring). The pose that replaces it is reported with the shading
     fit's mask segmented again around it, and its checks (``shading_loss`` the loss it replaced)."""
     Hf, Wf = work.shape[:2]
     boxes = [rect] if rect is not None else [(0.0, 0.0, Wf - 1.0, Hf - 1.0), region.box]
     found = photo_search(work, model, boxes, options, renderer, optimizer, progress)
     best = found.best
-    shading_edges, photo_edges = edge_costs(work, model, [shaded.camera, best.camera], options, renderer)
+    edge_fit = EdgeFit(work, model, options, renderer)
+    shading_edges, photo_edges = edge_fit([shaded.camera, best.camera])
     edges = {"shading_edges": shading_edges, "photo_edges": photo_edges}
     if photo_edges >= shading_edges:
         return PhotoPose(None, best.start, checks | edges, found.listed(), found.seconds, 0.0)
@@ -192,8 +193,7 @@ def photo_pose(work: npt.NDArray[np.uint8], model: VehicleModel, rect: Box | Non
     # fits every outline alike).
     box_index = best.start.detail["box_index"]
     grid = [v.camera for v in found.views if v.detail["box_index"] == box_index]
-    edges["edge_lead"] = 1.0 - photo_edges / max(float(np.median(edge_costs(work, model, grid, options, renderer))),
-                                                  1e-9)
+    edges["edge_lead"] = 1.0 - photo_edges / max(float(np.median(edge_fit(grid))), 1e-9)
     t = time.perf_counter()
     again = resegment(work, model, best.camera, options.segmentation, renderer, None, max(Wf, Hf))
     grabcut = time.perf_counter() - t

@@ -54,7 +54,7 @@ from vehicle_pose.search.optimize import CrossEntropy, Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow, fit_to_box
 
 __all__ = [
-    "BoxAnchoredParams", "Structure", "StructureCost", "edge_costs", "find_structure", "structure_fit", "loss_at",
+    "BoxAnchoredParams", "EdgeFit", "Structure", "StructureCost", "find_structure", "structure_fit", "loss_at",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -150,20 +150,30 @@ class StructureCost:
         return value
 
 
-def edge_costs(work: npt.NDArray[np.uint8], model: VehicleModel, cameras: list[Camera], options: RegistrationOptions,
-               renderer: Renderer) -> list[float]:
-    """The chamfer of the model's edges against the photo's for each of ``cameras`` (for the
-    working photo ``work``), as the free refinement of :func:`find_structure` scores it but
-    without a box: at ``structure_size``, truncated at ``structure_tau``. No box and no mask
-    enter it, so poses found in different ways (the shading search's, the photo search's) are
-    compared on one footing (``docs/decisions/0015-one-footing.md``)."""
-    st = options.structure
+def _structure_size(work: npt.NDArray[np.uint8], options: RegistrationOptions) -> tuple[int, int]:
+    """The size the structure is scored at: the working photo's, reduced to ``structure_size``
+    pixels on its longer side (never enlarged)."""
     Hf, Wf = work.shape[:2]
-    s = min(1.0, st.structure_size / max(Wf, Hf))
-    w, h = max(8, round(Wf * s)), max(8, round(Hf * s))
-    cost = StructureCost(resized(work, w, h), model.exterior(options.pyramid.min_faces, renderer), renderer, options,
-                         tau=st.structure_tau)
-    return [cost(cam.scaled(w, h)) for cam in cameras]
+    s = min(1.0, options.structure.structure_size / max(Wf, Hf))
+    return max(8, round(Wf * s)), max(8, round(Hf * s))
+
+
+class EdgeFit:
+    """The chamfer of the model's edges against the photo's, as the free refinement of
+    :func:`find_structure` scores it but without a box: at ``structure_size``, truncated at
+    ``structure_tau``; called with cameras for the working photo ``work``. No box and no mask
+    enter it, so poses found in different ways (the shading search's, the photo search's) are
+    compared on one footing (``docs/decisions/0015-one-footing.md``). The photo's edges are
+    found once, when it is made."""
+
+    def __init__(self, work: npt.NDArray[np.uint8], model: VehicleModel, options: RegistrationOptions,
+                 renderer: Renderer) -> None:
+        self.size = _structure_size(work, options)
+        self.cost = StructureCost(resized(work, *self.size), model.exterior(options.pyramid.min_faces, renderer),
+                                  renderer, options, tau=options.structure.structure_tau)
+
+    def __call__(self, cameras: list[Camera]) -> list[float]:
+        return [self.cost(cam.scaled(*self.size)) for cam in cameras]
 
 
 def find_structure(
@@ -184,8 +194,7 @@ def find_structure(
     t0 = time.perf_counter()
     st = options.structure
     Hf, Wf = work.shape[:2]
-    s = min(1.0, st.structure_size / max(Wf, Hf))
-    w, h = max(8, round(Wf * s)), max(8, round(Hf * s))
+    w, h = _structure_size(work, options)
     image = resized(work, w, h)
     level_box: Box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
     ref = start.scaled(w, h)
