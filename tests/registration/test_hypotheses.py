@@ -24,7 +24,7 @@ def _filling(sedan, azimuth: float):
     return view_camera(sedan, azimuth, 10.0, 0.0, (12.0, 20.0, W - 12.0, H - 20.0), W, H, 3.0 * W)
 
 # Short searches: the synthetic photos' edges are exact.
-_FAST = {"anchor_evaluations": 301, "structure_evaluations": 150, "photo_hypotheses": 3}
+_FAST = {"anchor_evaluations": 301, "structure_runs": 1, "structure_evaluations": 150, "photo_hypotheses": 3}
 
 
 @pytest.mark.slow

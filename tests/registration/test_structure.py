@@ -56,7 +56,7 @@ def test_the_anchored_search_turns_a_rough_start_towards_the_truth(sedan, render
     found = find_structure(photo, sedan, start, _box(mask), options, renderer, NelderMeadRestarts())
     assert rotation_error(found.camera.R, truth.R) < 3.0
     assert [level.width for level in found.levels] == [320, 320]
-    assert found.levels[0].evaluations == options.structure.anchor_evaluations
+    assert found.levels[0].evaluations == options.structure.anchor_evaluations * options.structure.structure_runs
 
 
 @pytest.mark.slow

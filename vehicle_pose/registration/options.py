@@ -196,8 +196,10 @@ class Structure(_Group):
     are searched on the directional chamfer (truncated at ``anchor_tau`` of the diagonal) with
     the place and size fitted to the box, at ``structure_size`` pixels, by the cross-entropy
     method (``anchor_population`` samples a generation, the first spread by ``structure_spread``
-    degrees, ``anchor_evaluations`` in all); then all coordinates on the chamfer (truncated at
-    ``structure_tau``) and the box term (``structure_evaluations``).
+    degrees, ``anchor_evaluations`` a search; ``structure_runs`` searches with their own
+    samples, their results averaged: ``docs/decisions/0016-averaged-anchors.md``); then all
+    coordinates on the chamfer (truncated at ``structure_tau``) and the box term
+    (``structure_evaluations``).
     """
 
     structure: bool = option(True, "with a start camera and a box: find the pose on the photo's edges and the box "
@@ -210,9 +212,11 @@ class Structure(_Group):
     structure_tau: float = option(0.03, "chamfer truncation of the free structure refinement (photo diagonals)",
                                   low=1e-3, high=1.0)
     anchor_population: int = option(100, "samples per generation of the anchored search", low=10, high=1000)
-    anchor_evaluations: int = option(601, "evaluations of the anchored search (whole generations, and their mean)",
+    anchor_evaluations: int = option(301, "evaluations of each anchored search (whole generations, and their mean)",
                                      low=11)
     structure_evaluations: int = option(300, "evaluations of the free structure refinement", low=0)
+    structure_runs: int = option(2, "independent anchored searches, each with its own samples, whose results are "
+                                 "averaged", low=1, high=8)
     shading_trust: float = option(0.15, "loss over its maximum up to which the shading fit is credible",
                                   low=0.0, high=1.0)
 

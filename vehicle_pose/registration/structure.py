@@ -15,7 +15,8 @@ window frames, the lights and the wheel arches, and the box the client drew. So:
    The chamfer of a real photo has a broad floor about the true rotation, pitted with local
    minima a few degrees apart (every reflection makes an edge), so the search is the
    cross-entropy method (:class:`~vehicle_pose.search.optimize.CrossEntropy`), which returns
-   the mean of the best samples rather than one pit.
+   the mean of the best samples rather than one pit; and the means of independent searches
+   are averaged, since each still leans towards a pit of its own.
 2. **Free refinement**: all seven view coordinates, on the chamfer plus the box term
    (:func:`~vehicle_pose.search.views.box_overflow`), so that a loose or tight box does not fix
    the size.
@@ -205,21 +206,28 @@ def find_structure(
     anchored = BoxAnchoredParams(ref, level_box, points, centre)
     objective = StructureCost(image, mesh, renderer, options, tau=st.anchor_tau, progress=progress,
                               stage=f"structure anchored ({w}x{h})")
+    refine = StructureCost(image, mesh, renderer, options, tau=st.structure_tau, box=level_box, points=points,
+                           progress=progress, stage=f"structure refined ({w}x{h})")
     # The first generation's spread: the start's rotation error (5-15 degrees for a rough
     # start) about the image's horizontal and vertical axes, half that about the optical axis
     # (photos are mostly level), and a factor of two either way in focal length.
     spread = np.radians(st.structure_spread)
-    sampler = CrossEntropy(population=st.anchor_population, elite=max(1, st.anchor_population // 10))
-    found = _search(sampler, objective, anchored, anchored.start(), np.array([spread, spread, 0.5 * spread, 0.7]),
-                    st.anchor_evaluations)
-    camera = anchored.camera(found.x)
+    # Independent anchored searches, their means averaged: each search's mean still sits in one
+    # of the floor's pits, a few degrees from its middle, and the pits differ from sample to
+    # sample; their average is nearer the middle (docs/decisions/0016-averaged-anchors.md).
+    found = [_search(CrossEntropy(population=st.anchor_population, elite=max(1, st.anchor_population // 10),
+                                  seed=seed),
+                     objective, anchored, anchored.start(), np.array([spread, spread, 0.5 * spread, 0.7]),
+                     st.anchor_evaluations)
+             for seed in range(st.structure_runs)]
+    x = np.mean([f.x for f in found], axis=0)
+    camera = anchored.camera(x)
     anchored_camera = camera
     t1 = time.perf_counter()
-    levels = [LevelReport(w, h, mesh.n_faces, found.evaluations, found.restarts, float("nan"), t1 - t0, found.fun)]
+    levels = [LevelReport(w, h, mesh.n_faces, sum(f.evaluations for f in found), sum(f.restarts for f in found),
+                          float("nan"), t1 - t0, objective(camera))]
 
     free = ViewParams(camera, centre, options.probes.dolly_pivot * model.mesh.sphere[1])
-    refine = StructureCost(image, mesh, renderer, options, tau=st.structure_tau, box=level_box, points=points,
-                           progress=progress, stage=f"structure refined ({w}x{h})")
     res = _search(optimizer, refine, free, free.start(), 0.3 * free.steps(), st.structure_evaluations)
     if res.fun < refine(camera):
         camera = free.camera(res.x)
