@@ -143,13 +143,18 @@ def photo_search(
                 cands.append(Candidate(cam, "photo-search", score=-information,
                                        detail={"azimuth": az, "elevation": el, "box_index": float(k),
                                                "information": information}))
+    # From a grid view far from the truth, independent anchored searches can end in different
+    # basins (a view and its mirror twin) and their average in neither: each hypothesis gets one
+    # search of the same budget (docs/decisions/0016-averaged-anchors.md).
+    st = options.structure
+    single = options.replace(structure_runs=1, anchor_evaluations=st.structure_runs * (st.anchor_evaluations - 1) + 1)
     hypotheses = []
     chosen = distinct(cands, search.photo_hypotheses)
     for k, cand in enumerate(chosen):
         if progress is not None:
             progress(f"photo search: hypothesis {k + 1}/{len(chosen)}", 0, float("nan"))
         box = boxes[int(cand.detail["box_index"])]
-        found = find_structure(work, model, cand.camera, box, options, renderer, optimizer, progress)
+        found = find_structure(work, model, cand.camera, box, single, renderer, optimizer, progress)
         hypotheses.append(Hypothesis(cand, box, found))
     hypotheses.sort(key=lambda h: h.objective)
     return PhotoSearch(hypotheses, time.perf_counter() - t0, cands)
