@@ -206,19 +206,17 @@ def find_structure(
     anchored = BoxAnchoredParams(ref, level_box, points, centre)
     objective = StructureCost(image, mesh, renderer, options, tau=st.anchor_tau, progress=progress,
                               stage=f"structure anchored ({w}x{h})")
-    refine = StructureCost(image, mesh, renderer, options, tau=st.structure_tau, box=level_box, points=points,
-                           progress=progress, stage=f"structure refined ({w}x{h})")
     # The first generation's spread: the start's rotation error (5-15 degrees for a rough
     # start) about the image's horizontal and vertical axes, half that about the optical axis
     # (photos are mostly level), and a factor of two either way in focal length.
     spread = np.radians(st.structure_spread)
+    steps = np.array([spread, spread, 0.5 * spread, 0.7])
     # Independent anchored searches, their means averaged: each search's mean still sits in one
     # of the floor's pits, a few degrees from its middle, and the pits differ from sample to
     # sample; their average is nearer the middle (docs/decisions/0016-averaged-anchors.md).
-    found = [_search(CrossEntropy(population=st.anchor_population, elite=max(1, st.anchor_population // 10),
-                                  seed=seed),
-                     objective, anchored, anchored.start(), np.array([spread, spread, 0.5 * spread, 0.7]),
-                     st.anchor_evaluations)
+    elite = max(1, st.anchor_population // 10)
+    found = [_search(CrossEntropy(population=st.anchor_population, elite=elite, seed=seed), objective, anchored,
+                     anchored.start(), steps, st.anchor_evaluations)
              for seed in range(st.structure_runs)]
     x = np.mean([f.x for f in found], axis=0)
     camera = anchored.camera(x)
@@ -228,6 +226,8 @@ def find_structure(
                           float("nan"), t1 - t0, objective(camera))]
 
     free = ViewParams(camera, centre, options.probes.dolly_pivot * model.mesh.sphere[1])
+    refine = StructureCost(image, mesh, renderer, options, tau=st.structure_tau, box=level_box, points=points,
+                           progress=progress, stage=f"structure refined ({w}x{h})")
     res = _search(optimizer, refine, free, free.start(), 0.3 * free.steps(), st.structure_evaluations)
     if res.fun < refine(camera):
         camera = free.camera(res.x)
