@@ -109,24 +109,3 @@ def test_a_crease_is_an_edge_only_when_sharper_than_the_threshold():
     sharp, blunt = EdgeLoss(photo, crease=0.6)(frame), EdgeLoss(photo, crease=2.0)(frame)
     assert blunt * EdgeLoss(photo).tau < 1.0
     assert sharp > blunt + 0.05
-
-
-def test_the_converse_sees_what_a_model_shrunk_onto_a_panel_leaves_out():
-    """A car's outline with a plate inside it: a model shrunk onto the plate has the lower
-    cost (all its few edges lie on the plate's), but the car's own edges in the common box
-    lie far from it, so its converse is high; the whole car's outline, a few pixels off, wins
-    on the two together. The converse is computed on the frames' common box, whatever their
-    order, and the cost beside it is the plain cost."""
-    photo = _square_photo(20, 15, 140, 105)
-    photo[60:72, 70:90] = 255
-    loss = EdgeLoss(photo)
-    car, plate = _square_frame(23, 15, 143, 105), _square_frame(70, 60, 90, 72)
-    (car_cost, car_converse), (plate_cost, plate_converse) = loss.both_ways([car, plate])
-    assert car_cost == loss(car) and plate_cost == loss(plate)
-    assert plate_cost < car_cost  # the cost alone prefers the shrunk model
-    assert plate_converse > 0.7 and car_converse < 0.4
-    assert car_cost + car_converse < plate_cost + plate_converse
-    assert loss.both_ways([plate, car]) == [(plate_cost, plate_converse), (car_cost, car_converse)]
-    alone = loss.both_ways([plate])[0][1]  # on its own box the plate explains the edges there
-    assert alone < 0.1
-    assert loss.both_ways([Frame.empty(W, H), plate])[0] == (1.0, 1.0)

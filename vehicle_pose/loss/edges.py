@@ -87,11 +87,8 @@ def photo_edges(rgb: npt.NDArray[np.uint8], *, low: float = 40.0, high: float = 
 
 @njit(cache=True, nogil=True)
 def _edge_cost(labels: npt.NDArray[Any], attrs: npt.NDArray[Any], distance: npt.NDArray[Any], x0: int, y0: int,
-               tau: float, albedo_step: float, crease: float,
-               found: npt.NDArray[Any]) -> tuple[float, int]:  # pragma: no cover - compiled
-    # ``found``: (h, w) uint8 set to 1 at the model's edge pixels, or (0, 0) when not wanted.
+               tau: float, albedo_step: float, crease: float) -> tuple[float, int]:  # pragma: no cover - compiled
     h, w = labels.shape
-    mark = found.shape[0] == h and found.shape[1] == w
     bins, height, width = distance.shape
     # Channels with a one-pixel border: coverage, albedo and the normal's x and y. Beyond the
     # window the model is absent (0), except where the window meets the photo's border:
@@ -150,8 +147,6 @@ def _edge_cost(labels: npt.NDArray[Any], attrs: npt.NDArray[Any], distance: npt.
             d = distance[b, r + y0, c + x0]
             total += d if d < tau else tau
             count += 1
-            if mark:
-                found[r, c] = 1
     return total, count
 
 
@@ -196,58 +191,10 @@ class EdgeLoss:
         self.min_pixels = min_pixels
 
     def __call__(self, frame: Frame) -> float:
-        return self._cost(frame, _NOT_MARKED)
-
-    def _cost(self, frame: Frame, found: npt.NDArray[np.uint8]) -> float:
         if frame.labels.size == 0:
             return 1.0
         total, count = _edge_cost(frame.labels, frame.attrs, self.edges.distance, int(frame.x0), int(frame.y0),
-                                  float(self.tau), float(self.albedo_step), float(self.crease), found)
+                                  float(self.tau), float(self.albedo_step), float(self.crease))
         if count < self.min_pixels:
             return 1.0
         return float(total / count / self.tau)
-
-    def both_ways(self, frames: list[Frame]) -> list[tuple[float, float]]:
-        """For each frame, the cost (:meth:`__call__`) and its converse: the mean over the
-        photo's edge pixels inside the frames' common box (the box of all their silhouettes) of
-        the distance to the nearest of the model's edges, truncated at ``tau`` and divided by it
-        (1 with no model edges, 0 with no photo edges there).
-
-        The cost alone does not see what the model leaves out: a model shrunk onto a panel has
-        its few edges on the panel's and costs little. The converse does: the edges of the rest
-        of the vehicle, inside the box the larger poses span, lie far from the shrunk model's.
-        Frames compared on one common box are compared on the same photo edges."""
-        if not frames:
-            return []
-        H, W = self.edges.edges.shape
-        boxes = [_silhouette_box(frame) for frame in frames if frame.labels.any()]
-        found = []
-        for frame in frames:
-            marked = np.zeros(frame.labels.shape, np.uint8)
-            found.append((self._cost(frame, marked), frame, marked))
-        if not boxes:
-            return [(cost, 1.0) for cost, _, _ in found]
-        x0, y0 = max(0, min(b[0] for b in boxes)), max(0, min(b[1] for b in boxes))
-        x1, y1 = min(W, max(b[2] for b in boxes)), min(H, max(b[3] for b in boxes))
-        inside = self.edges.edges[y0:y1, x0:x1]
-        out = []
-        for cost, frame, marked in found:
-            if not marked.any():
-                out.append((cost, 1.0))
-                continue
-            if not inside.any():
-                out.append((cost, 0.0))
-                continue
-            distance = cv2.distanceTransform(1 - frame.full(marked), cv2.DIST_L2, 3)[y0:y1, x0:x1][inside]
-            out.append((cost, float(np.minimum(distance, self.tau).mean() / self.tau)))
-        return out
-
-
-_NOT_MARKED = np.zeros((0, 0), np.uint8)
-
-
-def _silhouette_box(frame: Frame) -> tuple[int, int, int, int]:
-    """The box (x0, y0, x1, y1), ends excluded, of the pixels a frame covers, in image pixels."""
-    rows, cols = np.flatnonzero(frame.labels.any(axis=1)), np.flatnonzero(frame.labels.any(axis=0))
-    return (frame.x0 + int(cols[0]), frame.y0 + int(rows[0]), frame.x0 + int(cols[-1]) + 1,
-            frame.y0 + int(rows[-1]) + 1)

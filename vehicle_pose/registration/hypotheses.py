@@ -23,14 +23,10 @@ half turn or shrunk onto a panel. What holds on such a photo is coarser: the par
    :data:`VERIFY_APART` degrees away.
 4. **Against the shading pose** (:func:`photo_pose`): the winner was found in a box, the
    shading search's pose was not, so their structure objectives do not compare. Both are
-   scored by the chamfer and its converse (no box, no mask: the model's edges against the
-   photo's, and the photo's edges in the two poses' common box against the model's), and the
-   winner replaces the shading pose only where their sum is lower: a shading pose shrunk onto a
-   panel of a real photo scores 0.3-0.6 on the chamfer, a right one on a render 0.07-0.11, the
-   photo search's poses 0.13-0.46 (``docs/decisions/0015-one-footing.md``); on a photo of
-   100-200 pixels a pose shrunk onto the number plate can have the lower chamfer, and the
-   converse tells it by the vehicle's edges it leaves out
-   (``docs/decisions/0017-converse-chamfer.md``). A pose that replaces the shading pose also needs
+   scored by the chamfer alone (no box, no mask), and the winner replaces the shading pose only
+   where it is lower: a shading pose shrunk onto a panel of a real photo scores 0.3-0.6 there,
+   a right one on a render 0.07-0.11, the photo search's poses 0.13-0.46
+   (``docs/decisions/0015-one-footing.md``). A pose that replaces the shading pose also needs
    evidence of a vehicle: its chamfer's lead over the median view of the grid in its box
    (``edge_lead``; a photo of noise has edges everywhere, and every outline fits it alike).
 """
@@ -184,22 +180,18 @@ def photo_pose(work: npt.NDArray[np.uint8], model: VehicleModel, rect: Box | Non
                optimizer: Optimizer, progress: Progress | None = None) -> PhotoPose:
     """The photo search in the client's box ``rect`` (otherwise the whole frame and the box of
     the ``region`` found), and the verification against the shading search's pose ``shaded``
-    (its checks ``checks``): the winner replaces it only when the model's edges and the photo's
-    fit each other better there (:meth:`~vehicle_pose.registration.structure.EdgeFit.both_ways`,
-    no box and no mask: step 4 of the module docstring; both chamfers and both converses are
-    reported). The pose that replaces it is reported with the shading fit's mask segmented
-    again around it, and its checks (``shading_loss`` the loss it replaced)."""
+    (its checks ``checks``): the winner replaces it only when the model's edges fit the photo's
+    better there (:class:`~vehicle_pose.registration.structure.EdgeFit`, no box and no mask:
+    step 4 of the module docstring). The pose that replaces it is reported with the shading
+    fit's mask segmented again around it, and its checks (``shading_loss`` the loss it replaced)."""
     Hf, Wf = work.shape[:2]
     boxes = [rect] if rect is not None else [(0.0, 0.0, Wf - 1.0, Hf - 1.0), region.box]
     found = photo_search(work, model, boxes, options, renderer, optimizer, progress)
     best = found.best
     edge_fit = EdgeFit(work, model, options, renderer)
-    # The chamfer and its converse: a shading pose shrunk onto a panel has its few edges on the
-    # panel's, and leaves the rest of the vehicle's edges unexplained (docs/decisions/0017-converse-chamfer.md).
-    (shading_edges, shading_converse), (photo_edges, photo_converse) = edge_fit.both_ways([shaded.camera, best.camera])
-    edges = {"shading_edges": shading_edges, "photo_edges": photo_edges,
-             "shading_converse": shading_converse, "photo_converse": photo_converse}
-    if photo_edges + photo_converse >= shading_edges + shading_converse:
+    shading_edges, photo_edges = edge_fit([shaded.camera, best.camera])
+    edges = {"shading_edges": shading_edges, "photo_edges": photo_edges}
+    if photo_edges >= shading_edges:
         return PhotoPose(None, best.start, checks | edges, found.listed(), found.seconds, 0.0)
     # The evidence that there is a vehicle at all: how much closer the winner's edges lie than
     # those of a typical view of the grid in the same box (a photo of noise, edges everywhere,

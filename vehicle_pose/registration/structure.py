@@ -176,12 +176,6 @@ class EdgeFit:
     def __call__(self, cameras: list[Camera]) -> list[float]:
         return [self.cost(cam.scaled(*self.size)) for cam in cameras]
 
-    def both_ways(self, cameras: list[Camera]) -> list[tuple[float, float]]:
-        """Each camera's chamfer and its converse, the photo's edges in the cameras' common box
-        against the model's (:meth:`~vehicle_pose.loss.edges.EdgeLoss.both_ways`)."""
-        cost = self.cost
-        return cost.edges.both_ways([cost.renderer.render(cost.mesh, cam.scaled(*self.size)) for cam in cameras])
-
 
 def find_structure(
     work: npt.NDArray[np.uint8],
