@@ -63,7 +63,8 @@ def test_a_photo_the_shading_cannot_explain_is_searched_on_colours_and_edges(sed
     result = register(photo, sedan, renderer=renderer,
                       options=RegistrationOptions.from_flat(photo_loss=0.0, **_FAST))
     assert "photo_search" in result.timings
-    replaced = result.checks["photo_edges"] < result.checks["shading_edges"]
+    replaced = (result.checks["photo_edges"] < result.checks["shading_edges"]
+                or result.checks["shading_information"] < result.checks["grid_information"])
     assert (result.start_method == "photo-search") == replaced == (result.pose_stage == "structure")
     assert result.confidence == pytest.approx(confidence(result.checks))
     if replaced:
@@ -124,7 +125,42 @@ def test_the_photo_pose_replaces_a_shrunk_shading_pose_and_not_a_right_one(sedan
     assert len(replaced.listed) == 3 and replaced.seconds > 0.0
     kept = photo_pose(photo, sedan, None, region, _shaded(truth, mask.shape), checks, options, renderer, optimizer)
     assert kept.fit is None and kept.checks["photo_edges"] >= kept.checks["shading_edges"]
+    assert kept.checks["shading_information"] >= kept.checks["grid_information"]
     assert kept.checks["loss"] == 0.5 and "photo_search" not in kept.checks and len(kept.listed) == 3
+
+
+@pytest.mark.slow
+def test_a_shading_pose_the_colours_find_no_vehicle_in_is_replaced_whatever_its_chamfer(sedan, renderer,
+                                                                                      monkeypatch):
+    """A pose shrunk onto a panel can have the lower chamfer (on a small real photo, its few
+    edges on a number plate's). Here the edges are made to prefer the shading pose: the pose
+    is still replaced where its parts split off next to nothing of the photo's colours (its
+    information below the median view of the grid's), and kept where it is the truth."""
+
+    class ShadingFirst:  # every chamfer 1 but the first camera's (the shading pose's), 0
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __call__(self, cameras):
+            return [0.0] + [1.0] * (len(cameras) - 1)
+
+    monkeypatch.setattr("vehicle_pose.registration.hypotheses.EdgeFit", ShadingFirst)
+    truth = _filling(sedan, 150.0)
+    photo, mask = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)
+    options = RegistrationOptions.from_flat(**_FAST)
+    optimizer = make_optimizer(options.optimizer)
+    region = VehicleRegion.from_mask(mask)
+    W, H = truth.width, truth.height
+    points, centre = sedan.mesh.sample_points(600), sedan.mesh.sphere[0]
+    plate = fit_to_box(truth, points, centre, (0.45 * W, 0.6 * H, 0.55 * W, 0.66 * H), rounds=4, clip=True)
+    checks = {"loss": 0.5, "margin": 0.0}
+    replaced = photo_pose(photo, sedan, None, region, _shaded(plate, mask.shape), checks, options, renderer,
+                          optimizer)
+    assert replaced.checks["shading_edges"] < replaced.checks["photo_edges"]
+    assert replaced.checks["shading_information"] < replaced.checks["grid_information"]
+    assert replaced.fit is not None and rotation_error(replaced.fit.camera.R, truth.R) < 5.0
+    kept = photo_pose(photo, sedan, None, region, _shaded(truth, mask.shape), checks, options, renderer, optimizer)
+    assert kept.checks["shading_information"] >= kept.checks["grid_information"] and kept.fit is None
 
 
 @pytest.mark.slow

@@ -23,10 +23,13 @@ half turn or shrunk onto a panel. What holds on such a photo is coarser: the par
    :data:`VERIFY_APART` degrees away.
 4. **Against the shading pose** (:func:`photo_pose`): the winner was found in a box, the
    shading search's pose was not, so their structure objectives do not compare. Both are
-   scored by the chamfer alone (no box, no mask), and the winner replaces the shading pose only
+   scored by the chamfer alone (no box, no mask), and the winner replaces the shading pose
    where it is lower: a shading pose shrunk onto a panel of a real photo scores 0.3-0.6 there,
    a right one on a render 0.07-0.11, the photo search's poses 0.13-0.46
-   (``docs/decisions/0015-one-footing.md``). A pose that replaces the shading pose also needs
+   (``docs/decisions/0015-one-footing.md``). The winner also replaces a shading pose that
+   the colours do not find a vehicle in, its material information below the median view of
+   the grid's: on a photo of 100-200 pixels a pose shrunk onto the number plate can have the
+   lower chamfer (``docs/decisions/0017-shading-pose-evidence.md``). A pose that replaces the shading pose also needs
    evidence of a vehicle: its chamfer's lead over the median view of the grid in its box
    (``edge_lead``; a photo of noise has edges everywhere, and every outline fits it alike).
 """
@@ -85,11 +88,13 @@ class Hypothesis:
 
 @dataclass
 class PhotoSearch:
-    """The hypotheses, best first, the time spent, and every view of the grid as scored."""
+    """The hypotheses, best first, the time spent, every view of the grid as scored, and the
+    colour information they were scored with."""
 
     hypotheses: list[Hypothesis]
     seconds: float
     views: list[Candidate]
+    information: MaterialInformation
 
     @property
     def best(self) -> Hypothesis:
@@ -157,7 +162,7 @@ def photo_search(
         found = find_structure(work, model, cand.camera, box, single, renderer, optimizer, progress)
         hypotheses.append(Hypothesis(cand, box, found))
     hypotheses.sort(key=lambda h: h.objective)
-    return PhotoSearch(hypotheses, time.perf_counter() - t0, cands)
+    return PhotoSearch(hypotheses, time.perf_counter() - t0, cands, score)
 
 
 @dataclass
@@ -180,18 +185,27 @@ def photo_pose(work: npt.NDArray[np.uint8], model: VehicleModel, rect: Box | Non
                optimizer: Optimizer, progress: Progress | None = None) -> PhotoPose:
     """The photo search in the client's box ``rect`` (otherwise the whole frame and the box of
     the ``region`` found), and the verification against the shading search's pose ``shaded``
-    (its checks ``checks``): the winner replaces it only when the model's edges fit the photo's
-    better there (:class:`~vehicle_pose.registration.structure.EdgeFit`, no box and no mask:
-    step 4 of the module docstring). The pose that replaces it is reported with the shading
-    fit's mask segmented again around it, and its checks (``shading_loss`` the loss it replaced)."""
+    (its checks ``checks``): the winner replaces it when the model's edges fit the photo's
+    better there (:class:`~vehicle_pose.registration.structure.EdgeFit`, no box and no mask),
+    or when the shading pose's colour information is below the median view of the grid's (step
+    4 of the module docstring; both edge costs, the shading pose's information and the grid's
+    median are reported). The pose that replaces it is reported with the shading fit's mask
+    segmented again around it, and its checks (``shading_loss`` the loss it replaced)."""
     Hf, Wf = work.shape[:2]
     boxes = [rect] if rect is not None else [(0.0, 0.0, Wf - 1.0, Hf - 1.0), region.box]
     found = photo_search(work, model, boxes, options, renderer, optimizer, progress)
     best = found.best
     edge_fit = EdgeFit(work, model, options, renderer)
     shading_edges, photo_edges = edge_fit([shaded.camera, best.camera])
-    edges = {"shading_edges": shading_edges, "photo_edges": photo_edges}
-    if photo_edges >= shading_edges:
+    # The shading pose is kept only where the colours also find a vehicle there: its parts split
+    # the photo's colours at least as well as the median view of the grid does. A pose shrunk
+    # onto a panel can have the lower chamfer (its few edges on the panel's) and splits off
+    # next to nothing (docs/decisions/0017-shading-pose-evidence.md).
+    shading_information = found.information(shaded.camera)
+    grid_information = float(np.median([v.detail["information"] for v in found.views]))
+    edges = {"shading_edges": shading_edges, "photo_edges": photo_edges,
+             "shading_information": shading_information, "grid_information": grid_information}
+    if photo_edges >= shading_edges and shading_information >= grid_information:
         return PhotoPose(None, best.start, checks | edges, found.listed(), found.seconds, 0.0)
     # The evidence that there is a vehicle at all: how much closer the winner's edges lie than
     # those of a typical view of the grid in the same box (a photo of noise, edges everywhere,
