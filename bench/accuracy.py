@@ -3,7 +3,8 @@
 Usage: .venv/bin/python bench/accuracy.py [--part sweep|losses|photoreal|all] [--cases N]
        [--shared ../shared/bench]
 Success = mean vertex projection error <= 5 px at 640 px width. Prints tables and writes
-bench/results/accuracy_<part>.json.
+bench/results/accuracy_<part>.json; the photoreal part also a contact sheet of each case's start
+(left) and final (right) outline, accuracy_photoreal.png.
 """
 
 from __future__ import annotations
@@ -21,7 +22,16 @@ from vehicle_pose.photo import load_photo
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
-from common import parse_options, perturbed, photoreal_cases, projection_error, table, write_report
+from common import (
+    overlay_pair,
+    parse_options,
+    perturbed,
+    photoreal_cases,
+    projection_error,
+    table,
+    write_report,
+    write_sheet,
+)
 
 SUCCESS_PX = 5.0
 
@@ -61,6 +71,12 @@ def run_one(model, renderer, photo, truth, start, options, **kw) -> dict:
             "camera": res.camera.to_dict()}
 
 
+def _tiles(photo, model, renderer, start: Camera, r: dict, name: str) -> tuple[np.ndarray, np.ndarray]:
+    return overlay_pair(photo, model, start, Camera.from_dict(r["camera"]), renderer,
+                        f"{name} {model.info.id} start {r['start_error_px']:.1f} px",
+                        f"final {r['error_px']:.2f} px {r['pose_stage']}")
+
+
 def sweep(n: int) -> dict:
     rows, runs = [], {}
     cases = list(synthetic_cases(n))
@@ -92,14 +108,16 @@ def losses(n: int) -> dict:
 
 def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracle: bool = False,
               use_box: bool = True) -> dict:
-    renderer, out = Renderer(), []
+    renderer, out, tiles = Renderer(), [], []
     for case, gt, model in photoreal_cases(shared):
         truth = Camera.from_dict(gt)
         hint = json.loads((case / start_name).read_text())
         start = Camera.from_dict(hint)
         mask = np.load(case / "mask.npy") if oracle else None
         box = hint.get("bbox") if use_box else None
-        r = run_one(model, renderer, load_photo(case / "photo.jpg"), truth, start, options, foreground=mask, bbox=box)
+        photo = load_photo(case / "photo.jpg")
+        r = run_one(model, renderer, photo, truth, start, options, foreground=mask, bbox=box)
+        tiles.append(_tiles(photo, model, renderer, start, r, case.name))
         r["case"] = case.name
         r["model"] = model.info.id
         out.append(r)
@@ -109,7 +127,7 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
     rows = [summarise({"start": start_name, "model": mid}, [r for r in out if r["model"] == mid]) for mid in ids]
     rows.append(summarise({"start": start_name, "model": "all"}, out))
     print(table(rows, list(rows[0])))
-    return {"rows": rows, "runs": out}
+    return {"rows": rows, "runs": out, "tiles": tiles}
 
 
 def main() -> None:
@@ -137,10 +155,12 @@ def main() -> None:
                     + (f"_{args.tag}" if args.tag else ""))
             options = parse_options(args.option)
             data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask, use_box=not args.no_box)
+            tiles = data.pop("tiles")
             data["options"] = options.flat()
             data["oracle_mask"] = args.oracle_mask
             data["box"] = not args.no_box
             print(write_report(name, data))
+            print(write_sheet(name, tiles))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")
 

@@ -11,6 +11,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -19,6 +20,8 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import projection_error as _projection_error
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
 from vehicle_pose.render.gl import get_context
+from vehicle_pose.render.overlay import draw_overlay, save_png
+from vehicle_pose.render.renderer import Renderer
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -119,3 +122,39 @@ def parse_options(pairs: list[str]) -> RegistrationOptions:
         else:
             fields[key] = kind(value)
     return RegistrationOptions.from_flat(fields)
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    out = img.copy()
+    cv2.rectangle(out, (0, 0), (out.shape[1], 16), (0, 0, 0), -1)
+    cv2.putText(out, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def overlay_pair(photo: np.ndarray, model: VehicleModel, start: Camera, final: Camera, renderer: Renderer,
+                 start_text: str, final_text: str) -> tuple[np.ndarray, np.ndarray]:
+    """The start's and the result's outline on the photo, each captioned: one row of a contact sheet."""
+    mesh = model.lod(16384)
+    left = draw_overlay(photo, mesh, start, renderer=renderer, wheels=model.wheels)
+    right = draw_overlay(photo, mesh, final, renderer=renderer, wheels=model.wheels)
+    return _label(left, start_text), _label(right, final_text)
+
+
+def contact_sheet(tiles: list[tuple[np.ndarray, np.ndarray]], width: int = 360) -> np.ndarray:
+    """Rows of (start, final) overlays, each reduced to ``width`` pixels."""
+    rows = []
+    for left, right in tiles:
+        h = max(1, round(left.shape[0] * width / left.shape[1]))
+        pair = [cv2.resize(im, (width, h), interpolation=cv2.INTER_AREA) for im in (left, right)]
+        rows.append(np.concatenate([pair[0], np.full((h, 6, 3), 255, np.uint8), pair[1]], axis=1))
+    w = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 6), (0, w - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
+    return np.concatenate(rows, axis=0)
+
+
+def write_sheet(name: str, tiles: list[tuple[np.ndarray, np.ndarray]]) -> Path:
+    """Write ``bench/results/<name>.png``, the contact sheet of ``tiles``, and return its path."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.png"
+    save_png(path, contact_sheet(tiles))
+    return path

@@ -9,7 +9,9 @@ lightings, textured backgrounds. photoreal: the cases of ../shared/bench without
 identify: the synthetic photos registered against every shipped model, lowest loss wins.
 Success = mean vertex projection error <= 5 px at 640 px width. A flagged result is one with
 ``failed`` set; precision = flagged results that were wrong / flagged results, recall = wrong
-results flagged / wrong results. Writes bench/results/nohint_<part>.json.
+results flagged / wrong results. Writes bench/results/nohint_<part>.json and, for the synthetic
+and photoreal parts, a contact sheet nohint_<part>.png of each case's start (the search's) and
+final outline.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from vehicle_pose.registration.identify import identify
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, random_framed_view, synthesize
 
-from common import parse_options, photoreal_cases, projection_error, table, write_report
+from common import overlay_pair, parse_options, photoreal_cases, projection_error, table, write_report, write_sheet
 
 SUCCESS_PX = 5.0
 
@@ -63,11 +65,16 @@ def synthetic_cases(n: int, seed: int = 7):
         yield model, renderer, truth, photo, view
 
 
-def _run(model, renderer, photo, truth, options, foreground=None) -> dict:
+def _run(model, renderer, photo, truth, options, foreground=None, tiles=None, name="") -> dict:
     res = register(photo, model, options=options, renderer=renderer, foreground=foreground)
-    return {"error_px": projection_error(model.mesh.vertices, res.camera, truth), "seconds": res.seconds,
-            "failed": res.failed, "confidence": res.confidence, "checks": res.checks, "method": res.start_method,
-            "loss": res.loss}
+    r = {"error_px": projection_error(model.mesh.vertices, res.camera, truth), "seconds": res.seconds,
+         "failed": res.failed, "confidence": res.confidence, "checks": res.checks, "method": res.start_method,
+         "loss": res.loss}
+    if tiles is not None:
+        tiles.append(overlay_pair(photo, model, res.start_camera, res.camera, renderer,
+                                  f"{name} start ({r['method']})", f"final {r['error_px']:.1f} px conf "
+                                  f"{r['confidence']:.2f}{' FLAGGED' if r['failed'] else ''}"))
+    return r
 
 
 def _print(r: dict, name: str) -> None:
@@ -77,23 +84,26 @@ def _print(r: dict, name: str) -> None:
 
 
 def synthetic(n: int, options: RegistrationOptions) -> dict:
-    runs = []
+    runs, tiles = [], []
     for model, renderer, truth, photo, view in synthetic_cases(n):
-        r = _run(model, renderer, photo, truth, options) | {"model": model.info.id, "view": view}
-        _print(r, f"{model.info.id} az {view['azimuth']:.0f} el {view['elevation']:.0f}")
+        name = f"{model.info.id} az {view['azimuth']:.0f} el {view['elevation']:.0f}"
+        r = _run(model, renderer, photo, truth, options, tiles=tiles, name=name) | {"model": model.info.id,
+                                                                                     "view": view}
+        _print(r, name)
         runs.append(r)
     ids = sorted({r["model"] for r in runs})
     rows = [summarise({"model": mid}, [r for r in runs if r["model"] == mid]) for mid in ids]
     rows.append(summarise({"model": "all"}, runs))
     print(table(rows, list(rows[0])))
-    return {"rows": rows, "runs": runs}
+    return {"rows": rows, "runs": runs, "tiles": tiles}
 
 
 def photoreal(shared: Path, options: RegistrationOptions, oracle: bool = False) -> dict:
-    renderer, runs = Renderer(), []
+    renderer, runs, tiles = Renderer(), [], []
     for case, gt, model in photoreal_cases(shared):
         mask = np.load(case / "mask.npy") if oracle else None
-        r = _run(model, renderer, load_photo(case / "photo.jpg"), Camera.from_dict(gt), options, mask)
+        r = _run(model, renderer, load_photo(case / "photo.jpg"), Camera.from_dict(gt), options, mask, tiles,
+                 f"{case.name} {model.info.id}")
         r |= {"case": case.name, "model": model.info.id}
         _print(r, f"{case.name} {model.info.id}")
         runs.append(r)
@@ -101,7 +111,7 @@ def photoreal(shared: Path, options: RegistrationOptions, oracle: bool = False) 
                       [r for r in runs if r["model"] == mid]) for mid in sorted({r["model"] for r in runs})]
     rows.append(summarise({"model": "all"}, runs))
     print(table(rows, list(rows[0])))
-    return {"rows": rows, "runs": runs}
+    return {"rows": rows, "runs": runs, "tiles": tiles}
 
 
 def identification(n: int, options: RegistrationOptions) -> dict:
@@ -143,12 +153,17 @@ def main() -> None:
     options = parse_options(args.option)
     suffix = f"_{args.tag}" if args.tag else ""
     if args.part in ("synthetic", "all"):
-        print(write_report("nohint_synthetic" + suffix, synthetic(args.cases, options) | {"options": options.flat()}))
+        data = synthetic(args.cases, options)
+        tiles = data.pop("tiles")
+        print(write_report("nohint_synthetic" + suffix, data | {"options": options.flat()}))
+        print(write_sheet("nohint_synthetic" + suffix, tiles))
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
             data = photoreal(args.shared, options, oracle=args.oracle_mask)
+            tiles = data.pop("tiles")
             print(write_report("nohint_photoreal" + suffix,
                                data | {"options": options.flat(), "oracle_mask": args.oracle_mask}))
+            print(write_sheet("nohint_photoreal" + suffix, tiles))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")
     if args.part in ("identify", "all"):

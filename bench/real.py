@@ -18,7 +18,6 @@ import argparse
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vehicle_pose import RegistrationOptions, register
@@ -26,10 +25,9 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
 from vehicle_pose.photo import load_photo
-from vehicle_pose.render.overlay import draw_overlay, save_png
 from vehicle_pose.render.renderer import Renderer
 
-from common import RESULTS, parse_options, table, write_report
+from common import overlay_pair, parse_options, table, write_report, write_sheet
 
 WORSE_DEG = 2.0
 """A case that ends more than this many degrees further from the annotation than it started."""
@@ -89,25 +87,6 @@ def summarise(label: dict, runs: list[dict]) -> dict:
     }
 
 
-def _label(img: np.ndarray, text: str) -> np.ndarray:
-    out = img.copy()
-    cv2.rectangle(out, (0, 0), (out.shape[1], 16), (0, 0, 0), -1)
-    cv2.putText(out, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
-    return out
-
-
-def contact_sheet(tiles: list[tuple[np.ndarray, np.ndarray]], width: int = 360) -> np.ndarray:
-    """Rows of (start, final) overlays, each reduced to ``width`` pixels."""
-    rows = []
-    for left, right in tiles:
-        h = max(1, round(left.shape[0] * width / left.shape[1]))
-        pair = [cv2.resize(im, (width, h), interpolation=cv2.INTER_AREA) for im in (left, right)]
-        rows.append(np.concatenate([pair[0], np.full((h, 6, 3), 255, np.uint8), pair[1]], axis=1))
-    w = max(r.shape[1] for r in rows)
-    rows = [np.pad(r, ((0, 6), (0, w - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
-    return np.concatenate(rows, axis=0)
-
-
 def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
         use_box: bool = True) -> tuple[dict, np.ndarray]:
     models = load_models(shared)
@@ -156,14 +135,12 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
               f"loss {r['loss']:.4f} {r['pose_stage']}  "
               f"conf {'-' if r['confidence'] is None else format(r['confidence'], '.2f')} "
               f"{'FLAGGED ' if r['failed'] else ''}{r['seconds']:.1f} s", flush=True)
-        left = draw_overlay(photo, model.lod(16384), start_cam, renderer=renderer, wheels=model.wheels)
-        right = draw_overlay(photo, model.lod(16384), res.camera, renderer=renderer, wheels=model.wheels)
-        tiles.append((_label(left, f"{case.name} start {start_txt}"),
-                      _label(right, f"final {r['final_deg']:.1f} deg box {r['box_iou']:.2f}"
-                                    f"{' FLAGGED' if r['failed'] else ''}")))
+        tiles.append(overlay_pair(photo, model, start_cam, res.camera, renderer, f"{case.name} start {start_txt}",
+                                  f"final {r['final_deg']:.1f} deg box {r['box_iou']:.2f}"
+                                  f"{' FLAGGED' if r['failed'] else ''}"))
     rows = [summarise({"start": start_name}, runs)]
     print(table(rows, list(rows[0])))
-    return {"rows": rows, "runs": runs}, contact_sheet(tiles)
+    return {"rows": rows, "runs": runs}, tiles
 
 
 def main() -> None:
@@ -183,13 +160,11 @@ def main() -> None:
         return
     options = parse_options(args.option)
     name = "real_" + args.start.removesuffix(".json") + (f"_{args.tag}" if args.tag else "")
-    data, sheet = run(args.shared, args.start, options, args.cases, use_box=not args.no_box)
+    data, tiles = run(args.shared, args.start, options, args.cases, use_box=not args.no_box)
     data["options"] = options.flat()
     data["box"] = not args.no_box
     print(write_report(name, data))
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    save_png(RESULTS / f"{name}.png", sheet)
-    print(RESULTS / f"{name}.png")
+    print(write_sheet(name, tiles))
 
 
 if __name__ == "__main__":
