@@ -29,9 +29,10 @@ half turn or shrunk onto a panel. What holds on such a photo is coarser: the par
    (``docs/decisions/0015-one-footing.md``). The winner also replaces a shading pose that
    the colours do not find a vehicle in, its material information below the median view of
    the grid's: on a photo of 100-200 pixels a pose shrunk onto the number plate can have the
-   lower chamfer (``docs/decisions/0017-shading-pose-evidence.md``). A pose that replaces the shading pose also needs
-   evidence of a vehicle: its chamfer's lead over the median view of the grid in its box
-   (``edge_lead``; a photo of noise has edges everywhere, and every outline fits it alike).
+   lower chamfer (``docs/decisions/0017-shading-pose-evidence.md``). A pose that replaces the
+   shading pose also needs evidence of a vehicle: its chamfer's lead over the median view of
+   the grid in its box (``edge_lead``; a photo of noise has edges everywhere, and every outline
+   fits it alike).
 """
 
 from __future__ import annotations
@@ -203,21 +204,21 @@ def photo_pose(work: npt.NDArray[np.uint8], model: VehicleModel, rect: Box | Non
     # next to nothing (docs/decisions/0017-shading-pose-evidence.md).
     shading_information = found.information(shaded.camera)
     grid_information = float(np.median([v.detail["information"] for v in found.views]))
-    edges = {"shading_edges": shading_edges, "photo_edges": photo_edges,
-             "shading_information": shading_information, "grid_information": grid_information}
+    evidence = {"shading_edges": shading_edges, "photo_edges": photo_edges,
+                "shading_information": shading_information, "grid_information": grid_information}
     if photo_edges >= shading_edges and shading_information >= grid_information:
-        return PhotoPose(None, best.start, checks | edges, found.listed(), found.seconds, 0.0)
+        return PhotoPose(None, best.start, checks | evidence, found.listed(), found.seconds, 0.0)
     # The evidence that there is a vehicle at all: how much closer the winner's edges lie than
     # those of a typical view of the grid in the same box (a photo of noise, edges everywhere,
     # fits every outline alike).
     box_index = best.start.detail["box_index"]
     grid = [v.camera for v in found.views if v.detail["box_index"] == box_index]
-    edges["edge_lead"] = 1.0 - photo_edges / max(float(np.median(edge_fit(grid))), 1e-9)
+    evidence["edge_lead"] = 1.0 - photo_edges / max(float(np.median(edge_fit(grid))), 1e-9)
     t = time.perf_counter()
     again = resegment(work, model, best.camera, options.segmentation, renderer, None, max(Wf, Hf))
     grabcut = time.perf_counter() - t
     masked = replace(shaded, foreground=shaded.foreground if again is None else again)
     fitted = structure_fit(work, model, best.structure, masked, options, renderer)
     kept = (found.checks | fit_checks(work, model, fitted, region, options.color, renderer)
-            | {"shading_loss": checks["loss"]} | edges)
+            | {"shading_loss": checks["loss"]} | evidence)
     return PhotoPose(fitted, best.start, kept, found.listed(), found.seconds, grabcut)
