@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from vehicle_pose.errors import EmptyMeshError, ModelError
-from vehicle_pose.model.loading import load_mesh, oriented_faces
+from vehicle_pose.model.loading import load_mesh, oriented_faces, winding_consistent
 
 
 @pytest.mark.parametrize("fmt", ["obj", "ply", "off", "stl", "glb"])
@@ -60,3 +60,23 @@ def test_winding_repair_agrees_with_trimesh_and_is_consistent():
     reference = trimesh.Trimesh(v, f, process=False)
     trimesh.repair.fix_winding(reference)
     assert np.array_equal(mine, np.asarray(reference.faces))
+
+
+def test_the_winding_check_is_trimeshs():
+    """winding_consistent decides as trimesh's is_winding_consistent, on closed shells with
+    faces flipped and on random faces (open, non-manifold and degenerate edges)."""
+    rng = np.random.default_rng(11)
+    cases = []
+    for shell in (trimesh.creation.icosphere(2), trimesh.creation.box(), trimesh.creation.cylinder(0.5, 2)):
+        for share in (0.0, 0.02, 0.3):
+            f = np.asarray(shell.faces).copy()
+            flip = rng.random(len(f)) < share
+            f[flip] = f[flip][:, ::-1]
+            cases.append((np.asarray(shell.vertices), f))
+    for _ in range(400):
+        n = int(rng.integers(3, 10))
+        cases.append((rng.normal(size=(n, 3)), rng.integers(0, n, (int(rng.integers(1, 16)), 3))))
+    decided = [winding_consistent(f) for _, f in cases]
+    assert decided == [trimesh.Trimesh(v, f, process=False).is_winding_consistent for v, f in cases]
+    assert any(decided) and not all(decided)
+    assert not winding_consistent(np.zeros((0, 3), np.int64))

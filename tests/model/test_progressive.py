@@ -98,3 +98,29 @@ def test_a_prepared_model_drops_its_simplification_records_and_can_still_make_a_
     for p, q in zip(first.parts, again.parts, strict=True):
         np.testing.assert_array_equal(p.vertices, q.vertices)
         np.testing.assert_array_equal(p.faces, q.faces)
+
+
+def test_compiled_small_triangle_marks_are_the_array_passes():
+    """The compiled pass of Mesh.outlines marks the corners of triangles under a pixel and
+    lists the others, as the array operations it replaces did (corners off the image clipped)."""
+    from vehicle_pose.model.mesh import _compiled_mark_small
+
+    rng = np.random.default_rng(8)
+    shift, size = 4, 64
+    one = 1 << shift
+    uv = rng.integers(-3 * one, (size + 3) * one, (400, 2)).astype(np.int32)
+    uv[200:] = uv[:200] + rng.integers(-one, one, (200, 2))  # near twins: many small triangles
+    faces = np.c_[rng.integers(0, 400, 3000), rng.integers(0, 400, 3000), rng.integers(0, 400, 3000)]
+    faces[:1500, 1] = (faces[:1500, 0] + 200) % 400
+    faces[:1500, 2] = faces[:1500, 1]
+    c0, c1, c2 = uv[faces[:, 0]], uv[faces[:, 1]], uv[faces[:, 2]]
+    lo, hi = np.minimum(np.minimum(c0, c1), c2), np.maximum(np.maximum(c0, c1), c2)
+    small = np.maximum(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1]) < one
+    expected = np.zeros((size, size), np.uint8)
+    px = np.clip(uv[np.unique(faces[small])] >> shift, 0, size - 1)
+    expected[px[:, 1], px[:, 0]] = 1
+    image = np.zeros((size, size), np.uint8)
+    large = _compiled_mark_small()(uv, faces.astype(np.int64), image, shift)
+    np.testing.assert_array_equal(image, expected)
+    np.testing.assert_array_equal(large, np.flatnonzero(~small))
+    assert 100 < small.sum() < 2900

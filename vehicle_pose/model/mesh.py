@@ -8,10 +8,11 @@ where the file has one, its texture.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -211,19 +212,15 @@ class Mesh:
             a = np.cross(d, [0.0, 0.0, 1.0] if abs(d[2]) < 0.9 else [1.0, 0.0, 0.0])
             a /= np.linalg.norm(a)
             b = np.cross(d, a)
-            uv = np.round(np.stack([verts @ a, verts @ b], axis=1) * scale + (size / 2.0) * one).astype(np.int32)
-            c0, c1, c2 = uv[faces[:, 0]], uv[faces[:, 1]], uv[faces[:, 2]]
-            lo, hi = np.minimum(np.minimum(c0, c1), c2), np.maximum(np.maximum(c0, c1), c2)
-            small = np.maximum(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1]) < one
+            uv = np.empty((len(verts), 2), np.int32)
+            for column, axis in enumerate((a, b)):
+                uv[:, column] = np.round((verts @ axis) * scale + (size / 2.0) * one)
             # Triangles under a pixel mark the pixels of their corners (a dense mesh has
             # millions); the others are filled one call each, as fillPoly on many polygons
             # fills their overlaps even-odd.
-            corner = np.zeros(len(verts), bool)
-            corner[faces[small].reshape(-1)] = True
-            px = np.clip(uv[corner] >> shift, 0, size - 1)
-            out[k][px[:, 1], px[:, 0]] = 1
-            large = np.flatnonzero(~small)
-            _fill_triangles(out[k], np.stack([c0[large], c1[large], c2[large]], axis=1), lo[large], hi[large], shift)
+            large = _compiled_mark_small()(uv, faces, out[k], shift)
+            tris = uv[faces[large]]
+            _fill_triangles(out[k], tris, tris.min(axis=1), tris.max(axis=1), shift)
         return out.astype(bool)
 
     @cached_property
@@ -237,6 +234,34 @@ class Mesh:
         inter = (a & b).sum(axis=(1, 2))
         union = np.maximum((a | b).sum(axis=(1, 2)), 1)
         return float((inter / union).min())
+
+
+def _mark_small(uv: npt.NDArray[np.int32], faces: npt.NDArray[np.int64], image: npt.NDArray[np.uint8],
+                shift: int) -> npt.NDArray[np.int64]:
+    """Set the pixels of the corners of the triangles spanning less than a pixel along both
+    axes (``uv`` fixed point with ``shift`` bits, clipped to the image); the others' indices."""
+    one = 1 << shift
+    size_y, size_x = image.shape
+    large = np.empty(len(faces), np.int64)
+    n = 0
+    for f in range(len(faces)):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        xa, xb, xc, ya, yb, yc = uv[a, 0], uv[b, 0], uv[c, 0], uv[a, 1], uv[b, 1], uv[c, 1]
+        if max(xa, xb, xc) - min(xa, xb, xc) < one and max(ya, yb, yc) - min(ya, yb, yc) < one:
+            for v in (a, b, c):
+                image[min(max(uv[v, 1] >> shift, 0), size_y - 1), min(max(uv[v, 0] >> shift, 0), size_x - 1)] = 1
+        else:
+            large[n] = f
+            n += 1
+    return large[:n]
+
+
+@functools.cache
+def _compiled_mark_small() -> Callable[..., npt.NDArray[np.int64]]:
+    """:func:`_mark_small` compiled by numba (imported only when outlines are drawn)."""
+    from numba import njit
+
+    return njit(cache=True, nogil=True)(_mark_small)
 
 
 def _fill_triangles(image: npt.NDArray[np.uint8], tris: npt.NDArray[np.int32],
