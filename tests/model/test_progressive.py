@@ -124,3 +124,22 @@ def test_compiled_small_triangle_marks_are_the_array_passes():
     np.testing.assert_array_equal(image, expected)
     np.testing.assert_array_equal(large, np.flatnonzero(~small))
     assert 100 < small.sum() < 2900
+
+
+def test_merged_vertices_are_trimeshs_processed_mesh(sedan):
+    """merged_vertices gives the vertices and faces of trimesh's process=True: a soup merged back,
+    vertices 1e-9 apart merged and 3e-8 apart kept, unused vertices dropped, first-seen order."""
+    from vehicle_pose.model.progressive import merged_vertices
+
+    rng = np.random.default_rng(2)
+    part = _sedan_part(sedan, "body")
+    soup_v, soup_f = part.vertices[part.faces.reshape(-1)], np.arange(3 * len(part.faces)).reshape(-1, 3)
+    grid = rng.integers(0, 5, (300, 3)) * 0.25
+    near = np.r_[grid, grid[:100] + 1e-9, grid[100:200] + 1e-7, grid[200:] + 3e-8, rng.normal(size=(50, 3))]
+    near_f = rng.integers(0, len(near) - 20, (400, 3))  # the last 20 vertices unused
+    for v, f in [(part.vertices, part.faces), (soup_v, soup_f), (near, near_f)]:
+        tm = trimesh.Trimesh(v, f, process=True)
+        mv, mf = merged_vertices(v, f)
+        np.testing.assert_array_equal(mv, np.asarray(tm.vertices))
+        np.testing.assert_array_equal(mf, np.asarray(tm.faces))
+    assert len(merged_vertices(soup_v, soup_f)[0]) < len(soup_v) / 2

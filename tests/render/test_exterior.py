@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from vehicle_pose.geometry.camera import look_at_camera
@@ -85,3 +86,53 @@ def test_exterior_keeps_a_thin_sheet_two_sided(renderer):
     assert sum(len(p.faces) for p in ext.parts if not p.one_sided) == len(fin.faces)
     # Views of either side of the fin.
     _assert_renders_the_same(renderer, mesh, ext, [(90, 10), (270, 10), (60, 40), (240, 40)])
+
+
+def test_lanes_and_skipped_slivers_count_the_pixels_one_full_draw_counts(renderer, sedan):
+    """On a software rasteriser the pass leaves out the faces no pixel centre can fall in and
+    draws its views in several contexts at once: each face's pixel counts must be those of
+    every face drawn in one context. A dense sheet of slivers (the sedan's body subdivided
+    twice: most faces under a pixel) and the sedan's own parts."""
+    from vehicle_pose.render import exterior as ex
+
+    if not ex._software(renderer) or ex._gl_functions() is None:
+        pytest.skip("the lanes and the face choice are for Mesa's CPU rasteriser")
+    body = max(sedan.mesh.parts, key=lambda p: len(p.faces))
+    v, f = body.vertices, body.faces
+    for _ in range(2):
+        v, f = trimesh.remesh.subdivide(v, f)
+    dense = mesh_from_trimesh(trimesh.Trimesh(v, f, process=False))
+    for mesh in (dense, sedan.mesh):
+        offsets = np.cumsum([0] + [len(p.vertices) for p in mesh.parts])
+        points = np.concatenate([p.vertices for p in mesh.parts]).astype(np.float32)
+        faces = np.concatenate([p.faces.astype(np.int64) + o for p, o in zip(mesh.parts, offsets[:-1], strict=True)])
+        soup = np.ascontiguousarray(points[faces])
+        views = ex._view_matrices(mesh, ex.sphere_directions(6), 2.0)
+        work = (points, faces, soup, 256, True, ex._gl_functions())
+        full = ex._count_views(renderer, views, points, faces, soup, 256, False, None)
+        one_lane = ex._count_views(renderer, views, *work)
+        helper = ex._helper_pool().submit(ex._helper_lane, views[1::2], work)
+        main = ex._count_views(renderer, views[::2], *work)
+        other = helper.result()
+        for side in (0, 1):
+            np.testing.assert_array_equal(one_lane[side], full[side])
+            np.testing.assert_array_equal(main[side] + other[side], full[side])
+        assert full[0][1:].sum() > 0 and (full[0][1:] + full[1][1:] == 0).any()
+    index = np.empty(3 * len(faces), np.int32)
+    kept = ex._compiled_sampled_faces()(points, faces, views[0], 256, index)
+    assert kept < len(faces)  # some faces of the sedan are left out of a 256 pixel view
+
+
+def test_exterior_pass_is_the_same_in_lanes_and_in_one(renderer, sedan, monkeypatch):
+    from vehicle_pose.render import exterior as ex
+
+    mesh = sedan.mesh.decimated(4000)
+    monkeypatch.setattr(ex, "_lanes", lambda: 1)
+    one = ex.exterior_faces(renderer, mesh, directions=8, size=128)
+    monkeypatch.setattr(ex, "_lanes", lambda: 3)
+    ex._EXTERIOR.clear()
+    three = ex.exterior_faces(renderer, mesh, directions=8, size=128)
+    assert one is not three
+    for p, q in zip(one.parts, three.parts, strict=True):
+        assert p.one_sided == q.one_sided
+        np.testing.assert_array_equal(p.faces, q.faces)

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vehicle_pose.errors import EmptyMeshError
-from vehicle_pose.model.progressive import Progressive
+from vehicle_pose.model.progressive import Progressive, merged_vertices
 
 # trimesh, cv2 and fast_simplification are imported where they are used: a process that only
 # reads prepared models (vehicle_pose.model.store) never needs them.
@@ -178,12 +178,9 @@ class Mesh:
         cache: dict[int, Progressive] = self.__dict__.setdefault("_progressive_cache", {})
         found = cache.get(id(part))
         if found is None:
-            import trimesh
-
-            merged = trimesh.Trimesh(part.vertices, part.faces, process=True)
+            merged = merged_vertices(part.vertices, part.faces)
             with _SIMPLIFY_LOCK:  # the simplifier keeps its mesh in global state
-                found = cache[id(part)] = Progressive(np.asarray(merged.vertices, np.float64),
-                                                      np.asarray(merged.faces, np.int64))
+                found = cache[id(part)] = Progressive(*merged)
         return found
 
     def forget_simplification(self) -> None:

@@ -181,8 +181,16 @@ def estimate_wheels(vertices: npt.ArrayLike, up: FloatArray, forward: FloatArray
 
 
 def _lower_hull(points: FloatArray) -> FloatArray:
-    """Lower convex hull (monotone chain) of 2-D points (N, 2), sorted by x."""
+    """Lower convex hull (monotone chain) of 2-D points (N, 2), sorted by x.
+
+    A point equal to the last one on the chain pops it (their cross product is exactly 0) and
+    takes its place after the same test that placed it, so repeated points (a flat-shaded mesh
+    repeats each vertex for every face around it) are dropped first: the same hull, sooner. (The
+    one exception: copies of a single point, which the chain keeps two of.)"""
     pts = points[np.lexsort((points[:, 1], points[:, 0]))]
+    if len(pts) > 1:
+        distinct = pts[np.r_[True, (pts[1:] != pts[:-1]).any(axis=1)]]
+        pts = distinct if len(distinct) > 1 else pts[:2]
     hull: list[FloatArray] = []
     for pt in pts:
         while len(hull) >= 2:

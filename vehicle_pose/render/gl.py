@@ -13,7 +13,7 @@ import moderngl
 
 from vehicle_pose.errors import RenderError
 
-__all__ = ["get_context", "release_context"]
+__all__ = ["get_context", "release_context", "thread_context"]
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -43,6 +43,24 @@ def get_context(backend: str = "egl") -> moderngl.Context:
             raise RenderError(f"cannot create a headless OpenGL context ({backend}): {exc}") from None
         _state.update(ctx=ctx, pid=os.getpid())
         return ctx
+
+
+_threads = threading.local()
+
+
+def thread_context(backend: str = "egl") -> moderngl.Context:
+    """A further standalone context, current on the calling thread and kept for it (made again
+    after a fork): for work that draws in several threads at once, each with its own context
+    (the exterior pass on a CPU rasteriser). Raises :class:`RenderError` as :func:`get_context`."""
+    ctx = getattr(_threads, "ctx", None)
+    if ctx is not None and getattr(_threads, "pid", None) == os.getpid():
+        return ctx  # type: ignore[no-any-return]
+    try:
+        ctx = moderngl.create_context(standalone=True, backend=backend, require=330)  # type: ignore[arg-type]
+    except Exception as exc:  # glcontext raises plain Exceptions for driver failures
+        raise RenderError(f"cannot create a headless OpenGL context ({backend}): {exc}") from None
+    _threads.ctx, _threads.pid = ctx, os.getpid()
+    return ctx
 
 
 def release_context() -> None:
