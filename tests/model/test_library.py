@@ -105,3 +105,37 @@ def test_model_specs_resolve(library):
 def test_auto_is_not_a_model_id(tmp_path, library):
     with pytest.raises(ModelError, match="auto"):
         install_model(tmp_path, "auto", library.info("sedan").mesh_path)
+
+
+def test_prepare_makes_levels_on_a_thread_and_gets_what_one_thread_gets(sedan, renderer):
+    """prepare() makes the levels on a thread while it draws exterior passes: every level and
+    pass is the one a plain lod() and exterior() one after the other give."""
+    from vehicle_pose.model.library import VehicleModel
+
+    budgets = [512, 1024, 2048, 4096]
+    piped = VehicleModel(sedan.info, sedan.mesh.decimated(8000))
+    piped.prepare(renderer, budgets=budgets)
+    plain = VehicleModel(sedan.info, piped.mesh)  # the same full mesh, levels made afresh
+    for b in budgets:
+        for a, c in ((piped.lod(b), plain.lod(b)), (piped.exterior(b, renderer), plain.exterior(b, renderer))):
+            assert len(a.parts) == len(c.parts)
+            for p, q in zip(a.parts, c.parts, strict=True):
+                np.testing.assert_array_equal(p.vertices, q.vertices)
+                np.testing.assert_array_equal(p.faces, q.faces)
+                assert p.one_sided == q.one_sided
+
+
+def test_a_level_that_fails_fails_prepare(sedan, renderer, monkeypatch):
+    from vehicle_pose.model.library import VehicleModel
+
+    model = VehicleModel(sedan.info, sedan.mesh.decimated(8000))
+    real = model._decimate
+
+    def decimate(max_faces):
+        if max_faces == 1024:
+            raise MemoryError("no room for level 1024")
+        return real(max_faces)
+
+    monkeypatch.setattr(model, "_decimate", decimate)
+    with pytest.raises(MemoryError, match="level 1024"):
+        model.prepare(renderer, budgets=[512, 1024, 2048])

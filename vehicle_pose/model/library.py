@@ -85,17 +85,29 @@ class VehicleModel:
                 progress: Callable[[str], None] | None = None) -> None:
         """Compute (or read back) every level the registration's defaults use and its exterior
         pass, so that no registration of this model prepares anything (``progress`` is told
-        each step). One level at a time: the simplifier keeps global state, so decimations in
-        threads corrupt each other."""
+        each step). The levels are made one after another on a thread (the simplifier keeps
+        global state, so two decimations at once would corrupt each other), each while this
+        thread draws the exterior pass of the one before: the pass's draws let go of Python's
+        lock, the decimation's arrays and outlines mostly hold it."""
         import time
+        from concurrent.futures import ThreadPoolExecutor
 
         from vehicle_pose.model.store import default_budgets
 
-        for b in budgets if budgets is not None else default_budgets(self.mesh.n_faces):
-            t = time.perf_counter()
-            mesh = self.exterior(b, renderer)
-            if progress is not None:
-                progress(f"level {b}: {mesh.n_faces} faces ({time.perf_counter() - t:.1f} s)")
+        todo = list(budgets if budgets is not None else default_budgets(self.mesh.n_faces))
+        start = time.perf_counter()
+        pool = ThreadPoolExecutor(1, thread_name_prefix="prepare-levels")
+        try:
+            levels = [pool.submit(self.lod, b) for b in todo]
+            if any(b < self.mesh.n_faces for b in todo):
+                _ = self.mesh.reference_outlines  # drawn here while the thread simplifies
+            for b, level in zip(todo, levels, strict=True):
+                level.result()
+                mesh = self.exterior(b, renderer)
+                if progress is not None:
+                    progress(f"level {b}: {mesh.n_faces} faces ({time.perf_counter() - start:.1f} s in)")
+        finally:
+            pool.shutdown(cancel_futures=True)  # after a failure, the levels not yet begun
         self.mesh.forget_simplification()  # every level is made: its record is dead weight
 
 

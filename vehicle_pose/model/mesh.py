@@ -40,6 +40,7 @@ _KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
 LUMA = np.array([0.299, 0.587, 0.114])
 _uid = itertools.count(1)
 _SIMPLIFY_LOCK = threading.Lock()
+_OUTLINE_LOCK = threading.Lock()
 
 
 def classify_part(*names: str | None) -> str:
@@ -175,13 +176,12 @@ class Mesh:
     def _progressive(self, part: Part) -> Progressive:
         """The part's simplification (coincident vertices merged first), run once for every
         level (:mod:`vehicle_pose.model.progressive`)."""
-        cache: dict[int, Progressive] = self.__dict__.setdefault("_progressive_cache", {})
-        found = cache.get(id(part))
-        if found is None:
-            merged = merged_vertices(part.vertices, part.faces)
-            with _SIMPLIFY_LOCK:  # the simplifier keeps its mesh in global state
-                found = cache[id(part)] = Progressive(*merged)
-        return found
+        with _SIMPLIFY_LOCK:  # the simplifier keeps its mesh in global state
+            cache: dict[int, Progressive] = self.__dict__.setdefault("_progressive_cache", {})
+            found = cache.get(id(part))
+            if found is None:
+                found = cache[id(part)] = Progressive(*merged_vertices(part.vertices, part.faces))
+            return found
 
     def forget_simplification(self) -> None:
         """Drop the parts' simplification records (for a 2M-face mesh about 100 MB); a later
@@ -220,13 +220,19 @@ class Mesh:
             _fill_triangles(out[k], tris, tris.min(axis=1), tris.max(axis=1), shift)
         return out.astype(bool)
 
-    @cached_property
-    def _outlines(self) -> npt.NDArray[np.bool_]:
-        return self.outlines(256)
+    @property
+    def reference_outlines(self) -> npt.NDArray[np.bool_]:
+        """:meth:`outlines` at 256 pixels, which :meth:`outline_agreement` compares levels of
+        detail with: drawn once, by the first thread to ask (the others wait for it)."""
+        with _OUTLINE_LOCK:
+            found = self.__dict__.get("_reference_outlines")
+            if found is None:
+                found = self.__dict__["_reference_outlines"] = self.outlines(256)
+            return found
 
     def outline_agreement(self, other: Mesh, size: int = 256) -> float:
         """The lowest IoU of the two meshes' :meth:`outlines` over the 14 directions."""
-        a = self._outlines if size == 256 else self.outlines(size)
+        a = self.reference_outlines if size == 256 else self.outlines(size)
         b = other.outlines(size, frame=self.sphere)
         inter = (a & b).sum(axis=(1, 2))
         union = np.maximum((a | b).sum(axis=(1, 2)), 1)

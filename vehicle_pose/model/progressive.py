@@ -13,8 +13,8 @@ The positions are the simplifier's own arithmetic replayed in numpy (``Simplify.
 vertex starts with the sum of the plane quadrics of its faces (summed in face order), a
 collapse ``i1 -> i0`` adds the two quadrics and moves ``i0`` to the quadric's minimum, or, where
 the quadric is singular or both vertices lie on a border, to the better of ``i0``, ``i1`` and
-their midpoint. Collapses are evaluated in waves along their dependencies (a collapse needs the
-previous collapses into its two vertices), each wave as array operations.
+their midpoint, one collapse after another in a compiled loop (a collapse needs only earlier
+collapses into its two vertices).
 """
 
 from __future__ import annotations
@@ -30,21 +30,6 @@ __all__ = ["Progressive", "merged_vertices"]
 
 _F64 = npt.NDArray[np.float64]
 _I64 = npt.NDArray[np.int64]
-
-
-def _det(q: _F64, a11: int, a12: int, a13: int, a21: int, a22: int, a23: int, a31: int, a32: int, a33: int) -> _F64:
-    """``SymetricMatrix::det`` on rows of 10 quadric coefficients, in its order of operations."""
-    m = q.T
-    det: _F64 = (m[a11] * m[a22] * m[a33] + m[a13] * m[a21] * m[a32] + m[a12] * m[a23] * m[a31]
-                 - m[a13] * m[a22] * m[a31] - m[a11] * m[a23] * m[a32] - m[a12] * m[a21] * m[a33])
-    return det
-
-
-def _vertex_error(q: _F64, p: _F64) -> _F64:
-    m, x, y, z = q.T, p[:, 0], p[:, 1], p[:, 2]
-    error: _F64 = (m[0] * x * x + 2 * m[1] * x * y + 2 * m[2] * x * z + 2 * m[3] * x + m[4] * y * y
-                   + 2 * m[5] * y * z + 2 * m[6] * y + m[7] * z * z + 2 * m[8] * z + m[9])
-    return error
 
 
 def _plane_quadrics(vertices: _F64, faces: _I64) -> _F64:
@@ -173,6 +158,65 @@ def _compiled_first_rows() -> Callable[..., tuple[_I64, _I64]]:
     return njit(cache=True, nogil=True)(_first_rows)
 
 
+def _replay(vertices: _F64, c0: _I64, c1: _I64, q_init: _F64, border: npt.NDArray[np.bool_],
+            prev0: _I64, prev1: _I64) -> _F64:
+    """The position (K, 3) each collapse ``c1 -> c0`` gives ``c0``, in ``Simplify.h``'s own
+    order of operations (``SymetricMatrix::det``, ``vertex_error``, ``std::min``): the two
+    quadrics added, then their minimum, or on a singular quadric or a border edge the best of
+    the two ends and their midpoint. ``prev0``/``prev1``: the collapse that last moved each end
+    (-1: none, the vertex's own quadric and position). Compiled with numpy's error model, so a
+    zero determinant gives infinities as in C++."""
+
+    def det(q: _F64, a11: int, a12: int, a13: int, a21: int, a22: int, a23: int,
+            a31: int, a32: int, a33: int) -> float:
+        return float(q[a11] * q[a22] * q[a33] + q[a13] * q[a21] * q[a32] + q[a12] * q[a23] * q[a31]
+                     - q[a13] * q[a22] * q[a31] - q[a11] * q[a23] * q[a32] - q[a12] * q[a21] * q[a33])
+
+    def error(q: _F64, x: float, y: float, z: float) -> float:
+        return float(q[0] * x * x + 2 * q[1] * x * y + 2 * q[2] * x * z + 2 * q[3] * x + q[4] * y * y
+                     + 2 * q[5] * y * z + 2 * q[6] * y + q[7] * z * z + 2 * q[8] * z + q[9])
+
+    K = len(c0)
+    q_after = np.empty((K, 10))
+    p_after = np.empty((K, 3))
+    q = np.empty(10)
+    e1p = np.empty(3)
+    e2p = np.empty(3)
+    e3p = np.empty(3)
+    for k in range(K):
+        a, b = prev0[k], prev1[k]
+        for j in range(10):
+            q[j] = (q_after[a, j] if a >= 0 else q_init[c0[k], j]) + (q_after[b, j] if b >= 0 else q_init[c1[k], j])
+        for j in range(3):
+            e1p[j] = p_after[a, j] if a >= 0 else vertices[c0[k], j]
+            e2p[j] = p_after[b, j] if b >= 0 else vertices[c1[k], j]
+        d = det(q, 0, 1, 2, 1, 4, 5, 2, 5, 7)
+        p_after[k, 0] = -1 / d * det(q, 1, 2, 3, 4, 5, 6, 5, 7, 8)
+        p_after[k, 1] = 1 / d * det(q, 0, 2, 3, 1, 5, 6, 2, 7, 8)
+        p_after[k, 2] = -1 / d * det(q, 0, 1, 3, 1, 4, 6, 2, 5, 8)
+        if d == 0 or (border[c0[k]] and border[c1[k]]):
+            for j in range(3):
+                e3p[j] = (e1p[j] + e2p[j]) / 2
+            e1 = error(q, e1p[0], e1p[1], e1p[2])
+            e2 = error(q, e2p[0], e2p[1], e2p[2])
+            e3 = error(q, e3p[0], e3p[1], e3p[2])
+            low = e3 if e3 < e2 else e2  # std::min(a, b) is (b < a) ? b : a
+            low = low if low < e1 else e1
+            for e, ep in ((e1, e1p), (e2, e2p), (e3, e3p)):  # the last equal to the least wins
+                if e == low:
+                    p_after[k, 0], p_after[k, 1], p_after[k, 2] = ep[0], ep[1], ep[2]
+        q_after[k] = q
+    return p_after
+
+
+@functools.cache
+def _compiled_replay() -> Callable[..., _F64]:
+    """:func:`_replay` compiled by numba."""
+    from numba import njit
+
+    return njit(cache=True, nogil=True, error_model="numpy")(_replay)
+
+
 @dataclass
 class Progressive:
     """One simplification of a triangle mesh, cut at any face count.
@@ -241,46 +285,8 @@ class Progressive:
         last_into = np.full(len(self.vertices), -1, np.int64)
         last_into[c0[order]] = order  # the group's last (largest t) wins
         prev1 = last_into[c1]
-        # each collapse is needed by the next one into its vertex, or by the one removing it
-        consumer = np.full(K, -1, np.int64)
-        consumer[prev0[prev0 >= 0]] = np.flatnonzero(prev0 >= 0)
-        consumer[prev1[prev1 >= 0]] = np.flatnonzero(prev1 >= 0)
-        need = (prev0 >= 0).astype(np.int64) + (prev1 >= 0)
-        q_after = np.empty((K, 10))
-        p_after = np.empty((K, 3))
-        wave = np.flatnonzero(need == 0)
-        with np.errstate(all="ignore"):
-            while len(wave):
-                a, b = prev0[wave], prev1[wave]
-                q0 = np.where((a >= 0)[:, None], q_after[a], q_init[c0[wave]])
-                q1 = np.where((b >= 0)[:, None], q_after[b], q_init[c1[wave]])
-                p0 = np.where((a >= 0)[:, None], p_after[a], self.vertices[c0[wave]])
-                p1 = np.where((b >= 0)[:, None], p_after[b], self.vertices[c1[wave]])
-                q = q0 + q1
-                det = _det(q, 0, 1, 2, 1, 4, 5, 2, 5, 7)
-                solve = (det != 0) & ~(border[c0[wave]] & border[c1[wave]])
-                p = np.stack([-1 / det * _det(q, 1, 2, 3, 4, 5, 6, 5, 7, 8),
-                              1 / det * _det(q, 0, 2, 3, 1, 5, 6, 2, 7, 8),
-                              -1 / det * _det(q, 0, 1, 3, 1, 4, 6, 2, 5, 8)], axis=1)
-                if not solve.all():
-                    s = ~solve
-                    qs, e1p, e2p = q[s], p0[s], p1[s]
-                    e3p = (e1p + e2p) / 2
-                    e1, e2, e3 = _vertex_error(qs, e1p), _vertex_error(qs, e2p), _vertex_error(qs, e3p)
-                    low = np.where(e3 < e2, e3, e2)  # std::min(a, b) is (b < a) ? b : a
-                    low = np.where(low < e1, low, e1)
-                    pick = p[s]
-                    pick = np.where((e1 == low)[:, None], e1p, pick)
-                    pick = np.where((e2 == low)[:, None], e2p, pick)
-                    pick = np.where((e3 == low)[:, None], e3p, pick)
-                    p[s] = pick
-                q_after[wave] = q
-                p_after[wave] = p
-                nxt = consumer[wave]
-                nxt = nxt[nxt >= 0]
-                np.subtract.at(need, nxt, 1)
-                wave = np.unique(nxt[need[nxt] == 0])
-        return p_after
+        # both come earlier than the collapse: one pass in collapse order has every input ready
+        return _compiled_replay()(self.vertices, c0, c1, q_init, border, prev0, prev1)
 
     # -- a level ----------------------------------------------------------------------------
 
