@@ -21,4 +21,10 @@ fi
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[service,test]'
+# numba compiles the preparation's kernels on first use and keeps them beside the sources:
+# preparing one shipped model now, into a throw-away cache, spares a user's first preparation
+# the 4-5 s of compiling them.
+warm="$(mktemp -d)"
+.venv/bin/vehicle-pose prepare sedan --cache-dir "$warm" >/dev/null 2>&1 || echo "note: could not prepare the sedan now (no OpenGL?); the kernels compile on first use"
+rm -rf "$warm"
 echo "ready: .venv/bin/vehicle-pose"
