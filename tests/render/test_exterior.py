@@ -126,6 +126,8 @@ def test_lanes_and_skipped_slivers_count_the_pixels_one_full_draw_counts(rendere
 def test_exterior_pass_is_the_same_in_lanes_and_in_one(renderer, sedan, monkeypatch):
     from vehicle_pose.render import exterior as ex
 
+    if not ex._software(renderer) or ex._gl_functions() is None:
+        pytest.skip("the lanes are for Mesa's CPU rasteriser")
     mesh = sedan.mesh.decimated(4000)
     monkeypatch.setattr(ex, "_lanes", lambda: 1)
     one = ex.exterior_faces(renderer, mesh, directions=8, size=128)
@@ -135,4 +137,26 @@ def test_exterior_pass_is_the_same_in_lanes_and_in_one(renderer, sedan, monkeypa
     assert one is not three
     for p, q in zip(one.parts, three.parts, strict=True):
         assert p.one_sided == q.one_sided
+        np.testing.assert_array_equal(p.faces, q.faces)
+
+
+def test_a_lane_without_a_context_is_drawn_by_the_main_one(renderer, sedan, monkeypatch, caplog):
+    from vehicle_pose.errors import RenderError
+    from vehicle_pose.render import exterior as ex
+
+    if not ex._software(renderer) or ex._gl_functions() is None:
+        pytest.skip("the lanes are for Mesa's CPU rasteriser")
+    mesh = sedan.mesh.decimated(3000)
+    monkeypatch.setattr(ex, "_lanes", lambda: 1)
+    one = ex.exterior_faces(renderer, mesh, directions=6, size=96)
+
+    def no_context(views, work):
+        raise RenderError("cannot create a headless OpenGL context (egl): test")
+
+    monkeypatch.setattr(ex, "_lanes", lambda: 2)
+    monkeypatch.setattr(ex, "_helper_lane", no_context)
+    ex._EXTERIOR.clear()
+    again = ex.exterior_faces(renderer, mesh, directions=6, size=96)
+    assert "drawing its views here" in caplog.text
+    for p, q in zip(one.parts, again.parts, strict=True):
         np.testing.assert_array_equal(p.faces, q.faces)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import logging
 import os
 import threading
 import weakref
@@ -27,6 +28,8 @@ from vehicle_pose.render.gl import thread_context
 from vehicle_pose.render.renderer import Renderer, uniform
 
 __all__ = ["exterior_faces", "sphere_directions"]
+
+log = logging.getLogger(__name__)
 
 # Face ids for the visibility pass of :func:`exterior_faces`, negative where the face is
 # seen from behind. The faces are drawn as a triangle soup (three vertices of their own each)
@@ -334,10 +337,14 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
     gl = _gl_functions() if software else None
     lanes = _lanes() if gl is not None else 1
     work = (points, faces, soup, size, software, gl)
-    helpers = [_helper_pool().submit(_helper_lane, views[k::lanes], work) for k in range(1, lanes)]
+    helpers = [(views[k::lanes], _helper_pool().submit(_helper_lane, views[k::lanes], work)) for k in range(1, lanes)]
     front, back = _count_views(renderer, views[::lanes], *work)
-    for helper in helpers:
-        more_front, more_back = helper.result()
+    for share, helper in helpers:
+        try:
+            more_front, more_back = helper.result()
+        except RenderError as exc:  # no second context here: this one draws those views too
+            log.warning("exterior pass: a further OpenGL context failed (%s); drawing its views here", exc)
+            more_front, more_back = _count_views(renderer, share, *work)
         front += more_front
         back += more_back
     err = renderer.ctx.error
