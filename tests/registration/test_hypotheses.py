@@ -175,3 +175,34 @@ def test_a_photo_of_noise_is_not_a_vehicle_however_the_photo_search_fits_it(seda
     assert result.failed and result.confidence < 0.5
     if result.start_method == "photo-search":
         assert result.checks["edge_lead"] < 0.2
+
+
+def test_the_best_view_set_aside_next_to_the_first_hypothesis_is_refined_too(sedan):
+    """with_neighbours adds, for each of the first hypotheses, the best-scored view of its box that
+    the distinct choice set aside within 25 degrees of it: never a view already chosen, never a
+    view of another box, none for the hypotheses after the first ``count``."""
+    from vehicle_pose.registration.hypotheses import with_neighbours
+    from vehicle_pose.search.views import Candidate, distinct
+
+    boxes = [(100.0, 80.0, 540.0, 400.0), (0.0, 0.0, 639.0, 479.0)]
+    rng = np.random.default_rng(1)
+    views = [Candidate(view_camera(sedan, az, el, 0.0, boxes[b], 640, 480, 5 * 640.0), "photo-search",
+                       score=float(rng.uniform(-1, 0)),
+                       detail={"azimuth": az, "elevation": el, "box_index": float(b)})
+             for b in (0, 1) for az in range(0, 360, 15) for el in (4.0, 16.0)]
+    chosen = distinct(views, 3)
+
+    def ids(cands):
+        return [id(c) for c in cands]
+
+    assert ids(with_neighbours(chosen, views, 0)) == ids(chosen)
+    out = with_neighbours(chosen, views, 1)
+    assert ids(out[:3]) == ids(chosen) and len(out) == 4
+    first, added = chosen[0], out[3]
+    near = [v for v in views if id(v) not in ids(chosen) and v.detail["box_index"] == first.detail["box_index"]
+            and rotation_error(v.camera.R, first.camera.R) < 25.0]
+    assert added is min(near, key=lambda v: v.score)
+    assert rotation_error(added.camera.R, first.camera.R) < 25.0
+    both = with_neighbours(chosen, views, 2)
+    assert ids(both[:4]) == ids(out) and len(both) == 5 and len(set(ids(both))) == 5
+    assert both[4].detail["box_index"] == chosen[1].detail["box_index"]

@@ -55,10 +55,10 @@ from vehicle_pose.registration.segmentation import resegment
 from vehicle_pose.registration.structure import EdgeFit, Structure, find_structure, structure_fit
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer
-from vehicle_pose.search.views import Box, Candidate, SearchGrid, distinct, fit_to_box, view_camera
+from vehicle_pose.search.views import DISTINCT_ANGLE, Box, Candidate, SearchGrid, distinct, fit_to_box, view_camera
 from vehicle_pose.segment.region import VehicleRegion
 
-__all__ = ["Hypothesis", "PhotoPose", "PhotoSearch", "photo_pose", "photo_search", "VERIFY_APART"]
+__all__ = ["Hypothesis", "PhotoPose", "PhotoSearch", "photo_pose", "photo_search", "with_neighbours", "VERIFY_APART"]
 
 VERIFY_APART = 15.0
 """Degrees apart at which two refined hypotheses are two poses rather than one found twice (the
@@ -155,7 +155,7 @@ def photo_search(
     st = options.structure
     single = options.replace(structure_runs=1, anchor_evaluations=st.structure_runs * (st.anchor_evaluations - 1) + 1)
     hypotheses = []
-    chosen = distinct(cands, search.photo_hypotheses)
+    chosen = with_neighbours(distinct(cands, search.photo_hypotheses), cands, search.photo_neighbours)
     for k, cand in enumerate(chosen):
         if progress is not None:
             progress(f"photo search: hypothesis {k + 1}/{len(chosen)}", 0, float("nan"))
@@ -164,6 +164,25 @@ def photo_search(
         hypotheses.append(Hypothesis(cand, box, found))
     hypotheses.sort(key=lambda h: h.objective)
     return PhotoSearch(hypotheses, time.perf_counter() - t0, cands, score)
+
+
+def with_neighbours(chosen: list[Candidate], views: list[Candidate], count: int) -> list[Candidate]:
+    """``chosen`` (the distinct views, best first) and, for each of the first ``count``, the best
+    view of ``views`` in the same box that the distinct choice set aside next to it (within
+    :data:`~vehicle_pose.search.views.DISTINCT_ANGLE`).
+
+    The colours rank a view and its neighbour alike, and the distinct choice keeps only one of
+    them; where the one kept is a grid step too far for the refinement to cross, its neighbour
+    is the start that reaches the pose (real 05116: the kept view 25 degrees off ends there,
+    the neighbour set aside is 6 degrees off; docs/decisions/0019-colour-neighbour.md)."""
+    out = list(chosen)
+    for cand in chosen[:count]:
+        near = [v for v in views if all(v is not k for k in out)
+                and v.detail["box_index"] == cand.detail["box_index"]
+                and rotation_error(v.camera.R, cand.camera.R) < DISTINCT_ANGLE]
+        if near:
+            out.append(min(near, key=lambda v: v.score))
+    return out
 
 
 @dataclass

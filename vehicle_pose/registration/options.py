@@ -272,7 +272,9 @@ class Search(_Group):
     (the loss over its maximum above ``photo_loss``), the ``photo_search`` finds
     the pose on the parts' colours and the edges instead: ``photo_hypotheses`` distinct views
     of the grid at ``photo_elevations`` and ``photo_focal`` image widths, ranked on
-    ``photo_clusters`` colour classes, refined and verified on the edges
+    ``photo_clusters`` colour classes (and, next to the first ``photo_neighbours`` of them,
+    the best view the distinct choice set aside, ``docs/decisions/0019-colour-neighbour.md``),
+    refined and verified on the edges
     (``docs/decisions/0014-photo-search.md``); its pose replaces the shading pose where the
     model's edges fit the photo's better (``docs/decisions/0015-one-footing.md``).
     """
@@ -302,6 +304,9 @@ class Search(_Group):
                                "again by the photo search (0.2: where the confidence's fit score is 0)",
                                low=0.0, high=1.0)
     photo_hypotheses: int = option(4, "distinct hypotheses the photo search refines", low=1, high=12)
+    photo_neighbours: int = option(1, "the photo search also refines the best view that the choice of distinct "
+                                   "views set aside next to each of this many best hypotheses "
+                                   "(docs/decisions/0019-colour-neighbour.md)", low=0, high=12)
     photo_elevations: tuple[float, ...] = option((4.0, 16.0), "elevations of the photo search's views (degrees)",
                                                  low=-30.0, high=60.0)
     photo_focal: float = option(8.0, "focal length of the photo search's views (image widths)", low=0.1)

@@ -234,7 +234,11 @@ def score_cameras(
     return sorted(out, key=lambda c: c.score)
 
 
-def distinct(candidates: Sequence[Candidate], count: int, *, min_angle: float = 25.0) -> list[Candidate]:
+DISTINCT_ANGLE = 25.0
+"""Degrees apart at which :func:`distinct` takes two views for two poses."""
+
+
+def distinct(candidates: Sequence[Candidate], count: int, *, min_angle: float = DISTINCT_ANGLE) -> list[Candidate]:
     """The best ``count`` candidates whose rotations differ pairwise by at least ``min_angle``."""
     kept: list[Candidate] = []
     for cand in sorted(candidates, key=lambda c: c.score):
