@@ -343,26 +343,31 @@ class Levels:
             log.warning("cannot add to prepared model %s: %s", entry.folder, exc)
             self.entry = None
 
-    def lod(self, max_faces: int, make: Callable[[int], Mesh]) -> Mesh:
-        """The level for ``max_faces``: from memory, the entry, or ``make`` (run outside the
-        lock, so that one thread can make a level while another draws the exterior pass of
-        the last; two threads making the same level get the same arrays, and the first kept)."""
-        if self.mesh.n_faces <= max_faces:
-            return self.mesh
+    def _once(self, found: dict[Any, Mesh], key: Any, section: str, stored: str, make: Callable[[], Mesh]) -> Mesh:
+        """``found[key]``: from memory, the entry's ``section`` under ``stored``, or ``make``.
+        ``make`` runs outside the lock, so that one thread can make a level while another
+        draws the exterior pass of the last; two threads making the same mesh get the same
+        arrays, and the first is kept."""
         with self._lock:
-            mesh = self._lods.get(max_faces)
+            mesh = found.get(key)
             if mesh is None:
-                mesh = self._stored("lods", str(max_faces))
+                mesh = self._stored(section, stored)
                 if mesh is not None:
-                    self._lods[max_faces] = mesh
+                    found[key] = mesh
         if mesh is not None:
             return mesh
-        mesh = make(max_faces)
+        mesh = make()
         with self._lock:
-            if max_faces not in self._lods:
-                self._store("lods", str(max_faces), mesh)
-                self._lods[max_faces] = mesh
-            return self._lods[max_faces]
+            if key not in found:
+                self._store(section, stored, mesh)
+                found[key] = mesh
+            return found[key]
+
+    def lod(self, max_faces: int, make: Callable[[int], Mesh]) -> Mesh:
+        """The level for ``max_faces``: from memory, the entry, or ``make`` (:meth:`_once`)."""
+        if self.mesh.n_faces <= max_faces:
+            return self.mesh
+        return self._once(self._lods, max_faces, "lods", str(max_faces), lambda: make(max_faces))
 
     def _exterior_key(self, max_faces: int, renderer: Renderer) -> str:
         from vehicle_pose.render.exterior import exterior_faces
@@ -375,24 +380,11 @@ class Levels:
     def exterior(self, max_faces: int, mesh: Mesh, renderer: Renderer) -> Mesh:
         """The exterior pass of ``mesh`` (the level for ``max_faces``) on this renderer's GL
         implementation (its depth ties decide some faces, so it is part of the key); drawn
-        outside the lock, as :meth:`lod` makes its levels."""
-        key = self._exterior_key(max_faces, renderer)
-        with self._lock:
-            out = self._exteriors.get(key)
-            if out is None:
-                out = self._stored("exteriors", key)
-                if out is not None:
-                    self._exteriors[key] = out
-        if out is not None:
-            return out
+        outside the lock (:meth:`_once`)."""
         from vehicle_pose.render.exterior import exterior_faces
 
-        out = exterior_faces(renderer, mesh)
-        with self._lock:
-            if key not in self._exteriors:
-                self._store("exteriors", key, out)
-                self._exteriors[key] = out
-            return self._exteriors[key]
+        key = self._exterior_key(max_faces, renderer)
+        return self._once(self._exteriors, key, "exteriors", key, lambda: exterior_faces(renderer, mesh))
 
     def missing(self, budgets: Sequence[int], renderer: Renderer) -> list[int]:
         """The budgets whose exterior pass is neither in memory nor in the entry."""

@@ -173,8 +173,9 @@ def with_neighbours(chosen: list[Candidate], views: list[Candidate], count: int)
 
     The colours rank a view and its neighbour alike, and the distinct choice keeps only one of
     them; where the one kept is a grid step too far for the refinement to cross, its neighbour
-    is the start that reaches the pose (real 05116: the kept view 25 degrees off ends there,
-    the neighbour set aside is 6 degrees off; docs/decisions/0019-colour-neighbour.md)."""
+    is the start that reaches the pose (real 05116: the colours' first view, 25 degrees off,
+    ends there; its best neighbour set aside, 10.6 degrees off, ends 7.9 degrees off;
+    docs/decisions/0019-colour-neighbour.md)."""
     out = list(chosen)
     for cand in chosen[:count]:
         near = [v for v in views if all(v is not k for k in out)

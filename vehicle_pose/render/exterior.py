@@ -183,10 +183,15 @@ def _helper_lane(views: list[npt.NDArray[np.float64]], work: tuple[object, ...])
     if renderer is None:
         renderer = _LANE.renderer = Renderer(thread_context())
     front, back = _count_views(renderer, views, *work)  # type: ignore[arg-type]
+    _check_gl(renderer)
+    return front, back
+
+
+def _check_gl(renderer: Renderer) -> None:
+    """Raise :class:`RenderError` where the renderer's context recorded an OpenGL error."""
     err = renderer.ctx.error
     if err != "GL_NO_ERROR":
         raise RenderError(f"OpenGL error while finding the exterior faces: {err}")
-    return front, back
 
 
 def _count_views(renderer: Renderer, views: list[npt.NDArray[np.float64]], points: npt.NDArray[np.float32],
@@ -347,9 +352,7 @@ def exterior_faces(renderer: Renderer, mesh: Mesh, *, directions: int = 64, size
             more_front, more_back = _count_views(renderer, share, *work)
         front += more_front
         back += more_back
-    err = renderer.ctx.error
-    if err != "GL_NO_ERROR":
-        raise RenderError(f"OpenGL error while finding the exterior faces: {err}")
+    _check_gl(renderer)
     front, back = front[1:], back[1:]
     seen = front + back > 0
     keep_unseen = seen.sum() >= (1.0 - min_hidden) * base
