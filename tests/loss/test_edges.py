@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vehicle_pose.loss.edges import ORIENTATIONS, EdgeLoss, photo_edges
+from vehicle_pose.loss.edges import ORIENTATIONS, EdgeLoss, TwoWayChamfer, photo_edges
 from vehicle_pose.render.renderer import Frame
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
@@ -109,3 +109,52 @@ def test_a_crease_is_an_edge_only_when_sharper_than_the_threshold():
     sharp, blunt = EdgeLoss(photo, crease=0.6)(frame), EdgeLoss(photo, crease=2.0)(frame)
     assert blunt * EdgeLoss(photo).tau < 1.0
     assert sharp > blunt + 0.05
+
+
+def _windowed_frame(x0: int, y0: int, x1: int, y1: int, window: tuple[int, int, int, int]) -> Frame:
+    """:func:`_square_frame` with a darker material inside ``window`` (a material edge)."""
+    frame = _square_frame(x0, y0, x1, y1)
+    wx0, wy0, wx1, wy1 = window
+    frame.attrs[wy0 - y0:wy1 - y0, wx0 - x0:wx1 - x0, 0] = 0.3
+    frame.attrs[wy0 - y0:wy1 - y0, wx0 - x0:wx1 - x0, 3] = -0.3
+    return frame
+
+
+def test_the_converse_charges_the_photos_edges_that_the_model_leaves_unexplained():
+    photo = _square_photo(40, 30, 110, 90)
+    photo[45:75, 55:95] = 90  # a dark window inside the body
+    chamfer = TwoWayChamfer(photo)
+    plain_forward, plain_reverse = chamfer.parts(_square_frame(40, 30, 110, 90))
+    forward, reverse = chamfer.parts(_windowed_frame(40, 30, 110, 90, (55, 45, 95, 75)))
+    # Both outlines lie on the photo's edges; only the model with the window explains them all.
+    assert plain_forward * chamfer.tau < 1.0 and forward * chamfer.tau < 1.0
+    assert reverse * chamfer.tau < 1.0 < plain_reverse * chamfer.tau
+    assert chamfer(_windowed_frame(40, 30, 110, 90, (55, 45, 95, 75))) < chamfer(_square_frame(40, 30, 110, 90))
+    # A model half a square off explains neither way.
+    assert min(chamfer.parts(_square_frame(75, 30, 145, 90))) > 0.1
+
+
+def test_the_converse_counts_the_region_and_charges_the_rest_as_clutter():
+    photo = _square_photo(20, 30, 70, 90)
+    photo[40:80, 110:150] = 220  # a second bright square, away from the model
+    frame = _square_frame(20, 30, 70, 90)
+    whole = TwoWayChamfer(photo)
+    everywhere = whole.parts(frame)[1]
+    region = (10.0, 20.0, 80.0, 100.0)
+    inside = TwoWayChamfer(photo, region=region).parts(frame)[1]
+    assert inside * whole.tau < 1.0 < everywhere * whole.tau  # the other square's edges are unexplained
+    cluttered = TwoWayChamfer(photo, region=region, among=(0.0, 0.0, W - 1.0, H - 1.0), clutter=0.5)
+    n_in, n_out = cluttered.rows.size, cluttered.outside
+    assert n_out > 0 and abs(cluttered.parts(frame)[1] - (inside * n_in + 0.5 * n_out) / (n_in + n_out)) < 1e-9
+    assert TwoWayChamfer(photo).parts(Frame.empty(W, H)) == (1.0, 1.0)
+
+
+def test_colour_edges_find_an_outline_of_equal_luminance():
+    photo = np.full((H, W, 3), 0, np.uint8)
+    photo[..., 1] = 100
+    photo[30:90, 40:110] = (200, 0, 0)  # red on green, about the same luminance
+    assert abs(float(photo[60, 60] @ [0.299, 0.587, 0.114]) - float(photo[5, 5] @ [0.299, 0.587, 0.114])) < 2
+    assert not photo_edges(photo).edges.any()
+    colour = photo_edges(photo, colour=True)
+    assert colour.edges[28:32, 60:90].any(axis=0).all() and colour.edges[60, 38:42].any()
+    assert colour.bins[colour.edges].min() >= 0 and (colour.bins[~colour.edges] == -1).all()

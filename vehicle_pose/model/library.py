@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from vehicle_pose.model.mesh import Mesh
     from vehicle_pose.model.store import Levels, ModelStore
     from vehicle_pose.render.renderer import Renderer
+    from vehicle_pose.search.templates import TemplateGrid, ViewTemplates
 
 __all__ = ["AUTO", "VehicleModel", "ModelLibrary", "default_library_root", "install_model", "model_from_mesh"]
 
@@ -80,6 +81,18 @@ class VehicleModel:
         computed once per model and GL driver."""
         assert self.levels is not None
         return self.levels.exterior(max_faces, self.lod(max_faces), renderer)
+
+    def templates(self, renderer: Renderer, grid: TemplateGrid | None = None) -> ViewTemplates:
+        """The model's edge templates over ``grid`` (:mod:`vehicle_pose.search.templates`), drawn
+        once per model, axes and GL driver and kept with its prepared levels."""
+        from vehicle_pose.search.templates import TemplateGrid, ViewTemplates
+
+        assert self.levels is not None
+        grid = grid if grid is not None else TemplateGrid()
+        gl = renderer.ctx.info.get("GL_RENDERER", "?")
+        key = f"{grid.key()}|{self.info.up} {self.info.forward}|{self.wheels.to_dict()}|{gl}"
+        arrays = self.levels.arrays("templates", key, lambda: ViewTemplates.build(self, renderer, grid).arrays())
+        return ViewTemplates.from_arrays(arrays)
 
     def prepare(self, renderer: Renderer, budgets: Sequence[int] | None = None,
                 progress: Callable[[str], None] | None = None) -> None:

@@ -309,6 +309,7 @@ class Levels:
         self.entry = entry
         self._lods: dict[int, Mesh] = {}
         self._exteriors: dict[str, Mesh] = {}
+        self._arrays: dict[tuple[str, str], dict[str, npt.NDArray[Any]]] = {}
         self._lock = threading.RLock()
 
     def _stored(self, section: str, key: str) -> Mesh | None:
@@ -396,6 +397,49 @@ class Levels:
             except CorruptEntry:
                 stored = {}
         return [b for b, k in keys.items() if k not in self._exteriors and k not in stored]
+
+    def arrays(self, section: str, key: str, make: Callable[[], dict[str, npt.NDArray[Any]]]
+               ) -> dict[str, npt.NDArray[Any]]:
+        """Named arrays made once (``make``) and kept in memory and in the entry's ``section``
+        under ``key`` (the view templates of :mod:`vehicle_pose.search.templates`)."""
+        with self._lock:
+            found = self._arrays.get((section, key))
+            if found is not None:
+                return found
+            if self.entry is not None:
+                try:
+                    names = self.entry.manifest().get(section, {}).get(key)
+                    if names is None:
+                        names = self.entry.manifest(reload=True).get(section, {}).get(key)
+                    if names is not None:
+                        found = {name: self.entry.get_array(digest) for name, digest in names.items()}
+                except (CorruptEntry, AttributeError) as exc:
+                    log.warning("prepared model %s is unreadable (%s); computing again", self.entry.folder, exc)
+                    discard(self.entry)
+                    self.entry = None
+            if found is not None:
+                self._arrays[(section, key)] = found
+                return found
+        made = make()
+        with self._lock:
+            if (section, key) in self._arrays:
+                return self._arrays[(section, key)]
+            self._arrays[(section, key)] = made
+            if self.entry is not None:
+                entry = self.entry
+                try:
+                    names = {name: entry.put_array(a) for name, a in made.items()}
+
+                    def add(data: dict[str, Any]) -> None:
+                        if data.get("preparation") != PREPARATION:
+                            raise CorruptEntry("entry replaced meanwhile")
+                        data.setdefault(section, {})[key] = names
+
+                    entry.update(add)
+                except (OSError, CorruptEntry) as exc:
+                    log.warning("cannot add to prepared model %s: %s", entry.folder, exc)
+                    self.entry = None
+            return made
 
     def wheels(self, axes: str, make: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """Estimated wheel metadata for the axes ``"up forward"``, kept with the entry."""
