@@ -1,10 +1,12 @@
 """Registration accuracy and time: synthetic start-error sweep, loss comparison, photoreal cases.
 
 Usage: .venv/bin/python bench/accuracy.py [--part sweep|losses|photoreal|all] [--cases N]
-       [--shared ../shared/bench]
+       [--shared ../shared/bench|../shared/bench-partial] [--start init.json|init_hard.json|box] [--no-box]
+       [--oracle-mask] [--option KEY=VALUE ...] [--tag TAG]
 Success = mean vertex projection error <= 5 px at 640 px width. Prints tables and writes
 bench/results/accuracy_<part>.json; the photoreal part also a contact sheet of each case's start
-(left) and final (right) outline, accuracy_photoreal.png.
+(left) and final (right) outline, accuracy_photoreal.png (accuracy_bench-partial.png for the
+cases cut by the frame). ``--start box`` gives the start file's box alone, no start camera.
 """
 
 from __future__ import annotations
@@ -66,13 +68,15 @@ def synthetic_cases(n: int, seed: int = 0):
 def run_one(model, renderer, photo, truth, start, options, **kw) -> dict:
     pts = model.mesh.vertices
     res = register(photo, model, init_camera=start, options=options, renderer=renderer, **kw)
-    return {"error_px": projection_error(pts, res.camera, truth), "start_error_px": projection_error(pts, start, truth),
+    return {"error_px": projection_error(pts, res.camera, truth),
+            "start_error_px": projection_error(pts, res.start_camera, truth),
             "seconds": res.seconds, "evaluations": res.evaluations, "loss": res.loss, "pose_stage": res.pose_stage,
-            "camera": res.camera.to_dict()}
+            "failed": res.failed, "confidence": res.confidence, "camera": res.camera.to_dict(),
+            "start_camera": res.start_camera.to_dict()}
 
 
-def _tiles(photo, model, renderer, start: Camera, r: dict, name: str) -> tuple[np.ndarray, np.ndarray]:
-    return overlay_pair(photo, model, start, Camera.from_dict(r["camera"]), renderer,
+def _tiles(photo, model, renderer, r: dict, name: str) -> tuple[np.ndarray, np.ndarray]:
+    return overlay_pair(photo, model, Camera.from_dict(r["start_camera"]), Camera.from_dict(r["camera"]), renderer,
                         f"{name} {model.info.id} start {r['start_error_px']:.1f} px",
                         f"final {r['error_px']:.2f} px {r['pose_stage']}")
 
@@ -111,13 +115,13 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
     renderer, out, tiles = Renderer(), [], []
     for case, gt, model in photoreal_cases(shared):
         truth = Camera.from_dict(gt)
-        hint = json.loads((case / start_name).read_text())
-        start = Camera.from_dict(hint)
+        hint = json.loads((case / ("init.json" if start_name == "box" else start_name)).read_text())
+        start = None if start_name == "box" else Camera.from_dict(hint)
         mask = np.load(case / "mask.npy") if oracle else None
         box = hint.get("bbox") if use_box else None
         photo = load_photo(case / "photo.jpg")
         r = run_one(model, renderer, photo, truth, start, options, foreground=mask, bbox=box)
-        tiles.append(_tiles(photo, model, renderer, start, r, case.name))
+        tiles.append(_tiles(photo, model, renderer, r, case.name))
         r["case"] = case.name
         r["model"] = model.info.id
         out.append(r)
@@ -136,7 +140,8 @@ def main() -> None:
     ap.add_argument("--cases", type=int, default=8)
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "bench")
     ap.add_argument("--start", default="init.json",
-                    help="start file of the photoreal cases (init.json, init_hard.json)")
+                    help="start file of the photoreal cases (init.json, init_hard.json), or box (init.json's box "
+                    "alone, no start camera)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a RegistrationOptions field for the photoreal part, e.g. parametrization=view (repeatable)")
     ap.add_argument("--oracle-mask", action="store_true",
@@ -151,8 +156,9 @@ def main() -> None:
         print(write_report("accuracy_losses", losses(args.cases)))
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
-            name = ("accuracy_photoreal" + ("_hard" if "hard" in args.start else "")
-                    + (f"_{args.tag}" if args.tag else ""))
+            name = (f"accuracy_{'photoreal' if args.shared.resolve().name == 'bench' else args.shared.resolve().name}"
+                    + ("_hard" if "hard" in args.start else "") + ("_box" if args.start == "box" else "")
+                    + ("_nobox" if args.no_box else "") + (f"_{args.tag}" if args.tag else ""))
             options = parse_options(args.option)
             data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask, use_box=not args.no_box)
             tiles = data.pop("tiles")

@@ -1,15 +1,21 @@
 """Real photos: rotation error against human pose annotations, from a start camera, a box alone or no hint.
 
-Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|gt|box|none] [--cases N]
-       [--shared ../shared/real] [--option KEY=VALUE ...] [--tag TAG]
+Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|gt|box|none] [--no-box]
+       [--half a|b] [--stretch SX,SY,SZ] [--cases N] [--shared ../shared/real] [--option KEY=VALUE ...]
+       [--tag TAG]
 
 The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were
-made with; rotation only). Per case: the start's and the result's rotation error (the angle of
-``R_est R_gt^T``, degrees), the loss, the confidence and the time. Summary: the median error,
-Acc pi/6 (share within 30 degrees), the share within 10 degrees, the cases that end more than
-2 degrees further from the annotation than they started, the median time. Writes
-``bench/results/real_<start>[_TAG].json`` and a contact sheet ``real_<start>[_TAG].png`` with
-the start (left) and final (right) outline of every case.
+made with; rotation only), or of ``--shared ../shared/real-partial`` (the same photos with part
+of the car cut off by the frame). Per case: the start's and the result's rotation error (the
+angle of ``R_est R_gt^T``, degrees), the loss, the confidence and the time. Summary, for each
+half of ``split.json`` (``a`` and ``b``, fixed: choose on one, report on the other; a partial
+case belongs to the half of its source photo) and for all: the median error, Acc pi/6 (share
+within 30 degrees), the share within 10 degrees, the cases that end more than 2 degrees further
+from the annotation than they started, the flags, the median time. ``--half`` runs one half
+only. Writes ``bench/results/<set>_<start>[_TAG].json`` (``<set>`` is the cases' folder name)
+and a contact sheet ``<set>_<start>[_TAG].png`` with the start (left) and final (right) outline
+of every case. ``--stretch`` registers a copy of the model scaled along its file's axes, a CAD
+model close to the car but not exact (the annotated rotation still holds).
 """
 
 from __future__ import annotations
@@ -27,16 +33,38 @@ from vehicle_pose.model.library import VehicleModel, model_from_mesh
 from vehicle_pose.photo import load_photo
 from vehicle_pose.render.renderer import Renderer
 
-from common import overlay_pair, parse_options, table, write_report, write_sheet
+from common import RESULTS, overlay_pair, parse_options, table, write_report, write_sheet
 
 WORSE_DEG = 2.0
 """A case that ends more than this many degrees further from the annotation than it started."""
 
 
-def load_models(shared: Path) -> dict[str, VehicleModel]:
+def stretched(mesh: Path, factors: tuple[float, float, float], folder: Path) -> Path:
+    """A copy of the OBJ ``mesh`` (with its material library) in ``folder`` whose vertices are
+    scaled by ``factors`` along the file's own axes: a CAD model close to the car but not exact.
+    The rotation that maps the mesh to the camera is the same for both."""
+    folder.mkdir(parents=True, exist_ok=True)
+    lines = []
+    for line in mesh.read_text().splitlines():
+        if line.startswith("v "):
+            xyz = [float(v) for v in line.split()[1:4]]
+            line = "v " + " ".join(f"{v * f:.6f}" for v, f in zip(xyz, factors, strict=True))
+        lines.append(line)
+    out = folder / mesh.name
+    out.write_text("\n".join(lines) + "\n")
+    for other in mesh.parent.iterdir():
+        if other != mesh and not (folder / other.name).exists():
+            (folder / other.name).symlink_to(other.resolve())
+    return out
+
+
+def load_models(shared: Path, stretch: tuple[float, float, float] | None = None) -> dict[str, VehicleModel]:
     out = {}
     for entry in json.loads((shared / "models.json").read_text()):
-        m = model_from_mesh(shared / entry["mesh"], up=entry["up"], forward=entry["forward"], units="m",
+        mesh = shared / entry["mesh"]
+        if stretch is not None:
+            mesh = stretched(mesh.resolve(), stretch, RESULTS / "stretched" / "_".join(f"{f:g}" for f in stretch))
+        m = model_from_mesh(mesh, up=entry["up"], forward=entry["forward"], units="m",
                             meters_per_unit=entry["meters_per_unit"])
         out[entry["id"]] = m
     return out
@@ -87,12 +115,25 @@ def summarise(label: dict, runs: list[dict]) -> dict:
     }
 
 
+def halves(shared: Path) -> dict[str, str]:
+    """The half (``a`` or ``b``) of each case of ``shared``: its own, or its source photo's."""
+    split = json.loads((shared.parent / "real" / "split.json").read_text())
+    of = {name: h for h in ("a", "b") for name in split[h]}
+    out = {}
+    for case in (shared / "cases").iterdir():
+        gt = json.loads((case / "gt.json").read_text())
+        out[case.name] = of[gt.get("partial", {}).get("source", case.name)]
+    return out
+
+
 def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
-        use_box: bool = True) -> tuple[dict, np.ndarray]:
-    models = load_models(shared)
+        use_box: bool = True, half: str | None = None,
+        stretch: tuple[float, float, float] | None = None) -> tuple[dict, np.ndarray]:
+    models = load_models(shared, stretch)
     renderer = Renderer()
     runs, tiles = [], []
-    folders = sorted((shared / "cases").iterdir())[:cases]
+    of = halves(shared)
+    folders = [c for c in sorted((shared / "cases").iterdir()) if half is None or of[c.name] == half][:cases]
     for case in folders:
         gt = json.loads((case / "gt.json").read_text())
         model = models[gt["model"]]
@@ -112,6 +153,7 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         start_cam = res.start_camera
         r = {
             "case": case.name,
+            "half": of[case.name],
             "width": photo.shape[1],
             "height": photo.shape[0],
             "start_deg": rotation_error(init.R, R_gt) if init is not None else None,
@@ -138,7 +180,10 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         tiles.append(overlay_pair(photo, model, start_cam, res.camera, renderer, f"{case.name} start {start_txt}",
                                   f"final {r['final_deg']:.1f} deg box {r['box_iou']:.2f}"
                                   f"{' FLAGGED' if r['failed'] else ''}"))
-    rows = [summarise({"start": start_name}, runs)]
+    rows = [summarise({"start": start_name, "half": h}, [r for r in runs if r["half"] == h])
+            for h in ("a", "b") if any(r["half"] == h for r in runs)]
+    if len(rows) > 1:
+        rows.append(summarise({"start": start_name, "half": "all"}, runs))
     print(table(rows, list(rows[0])))
     return {"rows": rows, "runs": runs}, tiles
 
@@ -150,6 +195,9 @@ def main() -> None:
                     help="start file of each case (init.json, init_box.json), gt (init.json turned to the "
                     "annotated rotation), box (init.json's box alone, no start camera) or none")
     ap.add_argument("--cases", type=int, default=None, help="only the first N cases")
+    ap.add_argument("--half", choices=("a", "b"), default=None, help="only the cases of this half of split.json")
+    ap.add_argument("--stretch", default=None, metavar="SX,SY,SZ",
+                    help="register a copy of the model scaled along its file's axes (a close but not exact CAD)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a RegistrationOptions field, e.g. loss=invariant (repeatable)")
     ap.add_argument("--no-box", action="store_true", help="give only the start camera, not the start file's box")
@@ -159,8 +207,15 @@ def main() -> None:
         print(f"no real cases at {args.shared}; skipped")
         return
     options = parse_options(args.option)
-    name = "real_" + args.start.removesuffix(".json") + (f"_{args.tag}" if args.tag else "")
-    data, tiles = run(args.shared, args.start, options, args.cases, use_box=not args.no_box)
+    name = (f"{args.shared.resolve().name}_" + args.start.removesuffix(".json") + ("_nobox" if args.no_box else "")
+            + (f"_{args.half}" if args.half else "") + ("_stretched" if args.stretch else "")
+            + (f"_{args.tag}" if args.tag else ""))
+    stretch = None if args.stretch is None else tuple(float(v) for v in args.stretch.split(","))
+    if stretch is not None and len(stretch) != 3:
+        raise SystemExit("--stretch takes three factors SX,SY,SZ")
+    data, tiles = run(args.shared, args.start, options, args.cases, use_box=not args.no_box, half=args.half,
+                      stretch=stretch)  # type: ignore[arg-type]
+    data["stretch"] = stretch
     data["options"] = options.flat()
     data["box"] = not args.no_box
     print(write_report(name, data))

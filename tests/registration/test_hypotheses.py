@@ -25,7 +25,9 @@ def _filling(sedan, azimuth: float):
 
 # Short searches: the synthetic photos' edges are exact. The photo search spends the two
 # anchored searches' budget on one (2 x 150 + 1 = 301 evaluations, 3 generations).
-_FAST = {"anchor_evaluations": 151, "structure_runs": 2, "structure_evaluations": 150, "photo_hypotheses": 3}
+# The photo search is a step of the classic chain (``pose_search="classic"``).
+_FAST = {"anchor_evaluations": 151, "structure_runs": 2, "structure_evaluations": 150, "photo_hypotheses": 3,
+         "pose_search": "classic"}
 
 
 @pytest.mark.slow

@@ -96,10 +96,11 @@ def test_a_credible_shading_fit_is_kept_and_the_structure_not_searched(sedan, re
     np.testing.assert_array_equal(without.camera.t, result.camera.t)
 
 
-def test_without_a_box_there_is_no_structure_stage(sedan, renderer):
+def test_without_a_box_and_the_view_sphere_the_shading_pose_stands(sedan, renderer):
     truth = view(sedan, 300.0, 14.0, width=160, height=120, focal=225.0)
     photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=5)
     result = register(photo, sedan, init_camera=perturbed(truth, 5, degrees=4.0), renderer=renderer,
                       options=RegistrationOptions.from_flat(shading_trust=0.0, max_evaluations=40,
-                                                            fine_evaluations=20, focal_starts=()))
+                                                            fine_evaluations=20, focal_starts=(),
+                                                            sphere_without_box=False))
     assert result.pose_stage == "shading" and "structure" not in result.timings

@@ -18,9 +18,11 @@ __all__ = ["confidence", "fit_checks", "loss_share"]
 
 
 def confidence(checks: dict[str, float]) -> float:
-    """How credible a pose found without a start camera is, in [0, 1]; below 0.5 is ``failed``.
+    """How credible a pose is, in [0, 1]; below 0.5 is ``failed``.
 
-    The weakest of three scores, each 0.5 at its threshold:
+    A pose of the view-sphere search, or any pose from a start camera (``two_way`` in the
+    checks): :func:`_edge_confidence`. A pose of the classic chain (``pose_search="classic"``)
+    without a start camera: the weakest of three scores, each 0.5 at its threshold:
 
     - fit: the final loss over its maximum, 1 up to 0.10, 0.5 at 0.15, 0 from 0.20;
     - uniqueness: the relative loss margin over the best alternative at least 15 degrees away,
@@ -37,6 +39,8 @@ def confidence(checks: dict[str, float]) -> float:
     of a vehicle, the chamfer's lead over the median view of the grid (``edge_lead``), 0.5 at
     0.2 and 1 from 0.35 (``docs/decisions/0015-one-footing.md``).
     """
+    if "two_way" in checks and not checks.get("photo_search"):
+        return _edge_confidence(checks)
     unique = (checks.get("margin", 0.0) + 0.05) / 0.40
     if checks.get("photo_search"):
         u = float(np.clip(unique, 0.0, 1.0))
@@ -46,6 +50,36 @@ def confidence(checks: dict[str, float]) -> float:
     fit = (0.20 - checks.get("loss", 1.0)) / 0.10
     region = (checks.get("region_iou", 0.0) - 0.5) / 0.40
     return float(np.clip(min(fit, unique, region), 0.0, 1.0))
+
+
+MARGIN = 0.065
+"""The view-sphere search's relative margin over the best pose at least 15 degrees away at which
+its uniqueness is 0.5 (``docs/decisions/0020-view-sphere-search.md``: chosen on half a of the
+real photos, checked on half b and on the partial views)."""
+
+
+def _edge_confidence(checks: dict[str, float]) -> float:
+    """The confidence of a pose of the view-sphere search, or of any pose from a start camera:
+    the evidence of a vehicle along the pose's outline, and without a start camera also the
+    pose's uniqueness; each score 0.5 at its threshold.
+
+    - evidence: the pose's two-way chamfer leads the median of a ring of other views placed in
+      its box (``edge_lead``; 0.5 at 0.20, 1 from 0.35) and explains most of the edges there
+      (``two_way``; 0.5 at 0.70, 1 up to 0.55): noise leads nothing, an empty photo explains
+      nothing;
+    - or the shading explains the photo (the loss over its maximum, 0.5 at 0.15): a render, a
+      matte car;
+    - uniqueness (no start camera): the relative margin over the best pose at least 15 degrees
+      away (``margin``; 0.5 at :data:`MARGIN`, 1 from 0.2 more).
+    """
+    lead = float(np.clip((checks.get("edge_lead", 0.0) - 0.05) / 0.30, 0.0, 1.0))
+    explained = float(np.clip((0.85 - checks["two_way"]) / 0.30, 0.0, 1.0))
+    fit = float(np.clip((0.20 - checks.get("loss", 1.0)) / 0.10, 0.0, 1.0))
+    vehicle = max(fit, min(lead, explained))
+    if checks.get("hinted"):
+        return vehicle
+    unique = float(np.clip(0.5 + 2.5 * (checks.get("margin", 0.0) - MARGIN), 0.0, 1.0))
+    return min(unique, vehicle)
 
 
 def loss_share(loss: float, work: npt.NDArray[np.uint8], color: bool) -> float:

@@ -219,6 +219,13 @@ class Structure(_Group):
                                  "averaged", low=1, high=8)
     shading_trust: float = option(0.15, "loss over its maximum up to which the shading fit is credible",
                                   low=0.0, high=1.0)
+    sphere_without_box: bool = option(True, "with a start camera and no box, where the shading is not credible: "
+                                      "the pose found by the view-sphere search narrowed to the views near the "
+                                      "start (search.sphere_spread)")
+    polish_evaluations: int = option(200, "evaluations of each coarse level of the shading fit that polishes a "
+                                     "pose found without a start camera", low=20, high=5000)
+    shading_polish: float = option(0.45, "loss over its maximum of the edges' pose up to which the shading fit "
+                                   "polishes it", low=0.0, high=1.0)
 
 
 @dataclass(frozen=True)
@@ -311,6 +318,28 @@ class Search(_Group):
                                                  low=-30.0, high=60.0)
     photo_focal: float = option(8.0, "focal length of the photo search's views (image widths)", low=0.1)
     photo_clusters: int = option(12, "colour classes of the photo search's mutual information", low=2, high=64)
+    pose_search: str = option("sphere", "the search without a start camera: the view-sphere search (sphere, "
+                              "docs/decisions/0020-view-sphere-search.md) or the chain of decisions 0007-0019 "
+                              "(classic: region, wheels and view grid, shading refinement, photo search), kept to "
+                              "compare against", choices=("sphere", "classic"))
+    sphere_spread: float = option(30.0, "with a start camera: degrees from its rotation of the views searched",
+                                  low=1.0, high=180.0)
+    sphere_scales: tuple[float, float] = option((0.8, 2.0), "scales of the placed templates, factors of the one "
+                                                "that fits a template's box to the target's", low=0.05, high=20.0)
+    sphere_iou: float = option(0.6, "least IoU of a placed template's projection (cut to the frame) with its "
+                               "target box", low=0.0, high=1.0)
+    sphere_size: int = option(240, "longer side of the photo for the view-sphere search (pixels)", low=32)
+    sphere_rank: int = option(64, "placed templates of each target ranked on the two-way chamfer", low=1,
+                              high=2000)
+    sphere_apart: float = option(20.0, "degrees apart of the ranked poses refined", low=0.0, high=180.0)
+    sphere_refine: int = option(2, "ranked poses of each target refined", low=1, high=16)
+    sphere_hold: int = option(100, "evaluations of each refinement's first stage, its rotation held", low=0)
+    sphere_clutter: float = option(0.55, "cost of a photo edge outside a target's box but inside another "
+                                   "target's, in the two-way chamfer of the targets (a negative value: the "
+                                   "photo's mean truncated distance)", low=-1.0, high=1.0)
+    sphere_evaluations: int = option(200, "evaluations of each refinement's second stage", low=0)
+    sphere_step: float = option(0.3, "first steps of the refinement, in the view coordinates' steps", low=1e-3,
+                                high=10.0)
 
 
 _GROUPS: dict[str, type[Any]] = {

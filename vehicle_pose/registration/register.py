@@ -24,6 +24,7 @@ from vehicle_pose.registration.hypotheses import photo_pose
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
+from vehicle_pose.registration.sphere import edge_evidence, sphere_fit, sphere_pose, sphere_search
 from vehicle_pose.registration.structure import find_structure, structure_fit
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, make_optimizer
@@ -136,23 +137,51 @@ def register(
     timings: dict[str, float] = {}
     listed: list[dict[str, Any]] = []
     stage = "shading"
+    if options.search.pose_search == "sphere" and init_camera is None:
+        source = "bbox" if bbox is not None else "none"
+        # The search without a start camera runs without the edge term, and says so in the
+        # options it reports (docs/decisions/0007-no-hint-search.md).
+        options = options.replace(edge_weight=0.0)
+        found, swept, stage = sphere_pose(work, model, options, renderer, optimizer, box=rect, foreground=fg,
+                                             progress=progress)
+        timings["sphere"] = swept.seconds
+        levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
+        checks = (swept.checks | fit_checks(work, model, found, None, options.color, renderer)
+                  | edge_evidence(work, model, found.camera, options, renderer))
+        listed = swept.listed(model.templates(renderer))
+        start, method = swept.ranked[0].camera, "view-sphere"
+        timings["grabcut"] = grabcut_seconds
+        return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
+                       W0, H0, time.perf_counter() - t_start, stage)
     if init_camera is not None:
         source, method = "init_camera", "given"
         timings["start"] = 0.0
         start = _given_start(work, model, init_camera, rect, options)
         found = fit(work, model, start, options, FitPlan.hinted(options), renderer, optimizer, progress, fg, box=rect)
         spent, grabcut_seconds = [found], found.grabcut_seconds
-        if (rect is not None and options.structure.structure
-                and loss_share(found.loss, work, options.color) > options.structure.shading_trust):
+        st = options.structure
+        if st.structure and loss_share(found.loss, work, options.color) > st.shading_trust:
             # The shading does not explain the photo (real paint and glass mirror their
-            # surroundings): the pose is found on the photo's edges and the box instead
-            # (docs/decisions/0012-structure-first.md).
-            structure = find_structure(work, model, start, rect, options, renderer, optimizer, progress)
-            timings["structure"] = structure.seconds
-            found, stage = structure_fit(work, model, structure, found, options, renderer), "structure"
-            spent.append(found)
+            # surroundings): the pose is found on the photo's edges instead. In the client's
+            # box, by the structure's anchored search (docs/decisions/0012-structure-first.md);
+            # without a box, by the view-sphere search narrowed to the views near the start
+            # (docs/decisions/0020-view-sphere-search.md).
+            if rect is not None:
+                structure = find_structure(work, model, start, rect, options, renderer, optimizer, progress)
+                timings["structure"] = structure.seconds
+                found, stage = structure_fit(work, model, structure, found, options, renderer), "structure"
+                spent.append(found)
+            elif fg is None and st.sphere_without_box:
+                near = sphere_search(work, model, model.templates(renderer), options, renderer, optimizer,
+                                     init=start, progress=progress)
+                timings["sphere"] = near.seconds
+                found, stage = sphere_fit(work, model, near, options, renderer), "structure"
+                grabcut_seconds += found.grabcut_seconds
+                listed = near.listed(model.templates(renderer))
+                spent.append(found)
         levels = found.levels
-        checks = fit_checks(work, model, found, None, options.color, renderer)
+        checks = (fit_checks(work, model, found, None, options.color, renderer)
+                  | edge_evidence(work, model, found.camera, options, renderer) | {"hinted": 1.0})
     else:
         source = "bbox" if bbox is not None else "none"
         # The search without a start camera runs without the edge term, and says so in the
@@ -189,7 +218,7 @@ def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: Vehi
     final = found.camera.scaled(W0, H0)
     side = visible_side(final, model.wheels.side("left"))
     timings["optimize"] = sum(level.seconds for level in levels)
-    conf = confidence(checks) if "region_iou" in checks else None
+    conf = confidence(checks) if "region_iou" in checks or "edge_lead" in checks else None
     return RegistrationResult(
         camera=final,
         theta=camera_to_theta(final, model.wheels.side(side), side),

@@ -1,0 +1,165 @@
+"""The view-sphere search: the pose from every view, narrowed by the hints; synthetic ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from vehicle_pose import Camera, RegistrationOptions, register
+from vehicle_pose.loss.edges import TwoWayChamfer
+from vehicle_pose.metrics import rotation_error
+from vehicle_pose.model.library import ModelLibrary, VehicleModel
+from vehicle_pose.model.procedural import CarSpec, build_car
+from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
+from vehicle_pose.search.views import view_camera
+
+from helpers import projection_error
+
+W, H = 320, 240
+
+# Front and back of this car have the same outline; only the headlamps (no tail lamps) tell them
+# apart.
+SYMMETRIC = CarSpec(
+    id="symmetric", name="Front/back symmetric body", length=4.4, width=1.8, wheelbase=2.6, track=1.55,
+    wheel_radius=0.32, tyre_width=0.22, clearance=0.16, belt=0.95, roof_inset=0.18,
+    top=((2.2, 0.66), (2.1, 0.9), (0.9, 1.0), (0.45, 1.42), (-0.45, 1.42), (-0.9, 1.0), (-2.1, 0.9), (-2.2, 0.66)),
+    glass_x=(-0.85, 0.85),
+)
+
+
+@pytest.fixture(scope="module")
+def symmetric(tmp_path_factory) -> VehicleModel:
+    folder = tmp_path_factory.mktemp("models") / "symmetric"
+    folder.mkdir()
+    scene, wheels = build_car(SYMMETRIC)
+    for name in [n for n in scene.geometry if n.startswith("taillight")]:
+        scene.delete_geometry(name)
+    (folder / "model.glb").write_bytes(scene.export(file_type="glb"))
+    (folder / "model.json").write_text(json.dumps({
+        "id": "symmetric", "name": SYMMETRIC.name, "mesh": "model.glb", "units": "m", "meters_per_unit": 1.0,
+        "up": "+z", "forward": "+x", "wheels": wheels.to_dict(), "estimated": []}))
+    return ModelLibrary(folder.parent).load("symmetric")
+
+
+def _framed(model: VehicleModel, azimuth: float, elevation: float, fill: float, focal: float,
+            centre: tuple[float, float] = (W / 2, H / 2)) -> Camera:
+    """A camera at that view whose projection of the model is ``fill`` of the image wide."""
+    probe = view_camera(model, azimuth, elevation, 0.0, (0.0, 0.0, W - 1.0, H - 1.0), W, H, focal * W)
+    uv = probe.project(model.mesh.sample_points(600))
+    aspect = (uv[:, 1].max() - uv[:, 1].min()) / (uv[:, 0].max() - uv[:, 0].min())
+    bw = fill * W
+    box = (centre[0] - bw / 2, centre[1] - bw * aspect / 2, centre[0] + bw / 2, centre[1] + bw * aspect / 2)
+    return view_camera(model, azimuth, elevation, 0.0, box, W, H, focal * W)
+
+
+def test_the_two_way_chamfer_tells_a_symmetric_outline_front_from_back(symmetric, renderer):
+    """The half-turn twin of a car with the same outline front and back matches the photo's
+    edges as well one way; the converse, which asks what explains the photo's headlamps, does
+    not."""
+    truth = _framed(symmetric, 40.0, 12.0, 0.8, 1.5)
+    twin = _framed(symmetric, 220.0, 12.0, 0.8, 1.5)
+    photo, _ = synthesize(symmetric.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=2)
+    chamfer = TwoWayChamfer(photo, region=(0.0, 0.0, W - 1.0, H - 1.0))
+    mesh = symmetric.exterior(8192, renderer)
+    right, wrong = chamfer.parts(renderer.render(mesh, truth)), chamfer.parts(renderer.render(mesh, twin))
+    assert right[1] < 0.8 * wrong[1]
+    assert sum(right) < sum(wrong)
+
+
+@pytest.mark.slow
+def test_no_hint_tells_a_symmetric_outline_front_from_back(symmetric, renderer):
+    truth = _framed(symmetric, 40.0, 12.0, 0.8, 1.5)
+    photo, _ = synthesize(symmetric.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=2)
+    result = register(photo, symmetric, renderer=renderer)
+    assert rotation_error(result.camera.R, truth.R) < 10.0
+    assert result.start_method == "view-sphere"
+
+
+@pytest.mark.slow
+def test_no_hint_finds_a_car_that_fills_the_frame(sedan, renderer):
+    truth = _framed(sedan, 130.0, 12.0, 0.95, 1.2)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=5)
+    result = register(photo, sedan, renderer=renderer)
+    assert projection_error(sedan, result.camera, truth) < 2.0
+    assert result.start_source == "none" and result.start_method == "view-sphere" and not result.failed
+    assert result.checks["edge_lead"] > 0.2 and result.candidates
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("side,azimuth,fill,centre", [("left", 60.0, 0.9, (0.2 * W, H / 2)),
+                                                      ("corner", 30.0, 1.1, (0.3 * W, 0.25 * H))])
+def test_no_hint_finds_a_car_cut_by_the_frame(sedan, renderer, side, azimuth, fill, centre):
+    """About 30 % of the car beyond the left border, or a quarter beyond the top-left corner: a
+    template cut by the frame, not a failure. (A car cut in a corner that covers only the top
+    third of a cluttered frame is not found: no target holds it; engine.md, known limits.)"""
+    truth = _framed(sedan, azimuth, 10.0, fill, 1.3, centre)
+    uv = truth.project(sedan.mesh.sample_points(2000))
+    outside = np.mean((uv[:, 0] < 0) | (uv[:, 1] < 0))
+    assert 0.2 < outside < 0.45
+    if side == "corner":
+        assert np.mean(uv[:, 1] < 0) > 0.05
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=6)
+    result = register(photo, sedan, renderer=renderer)
+    assert projection_error(sedan, result.camera, truth) < 3.0 and not result.failed
+
+
+@pytest.mark.slow
+def test_a_box_alone_reaches_the_pose_no_hint_reaches(sedan, renderer):
+    truth = _framed(sedan, 250.0, 16.0, 0.6, 1.8, (0.45 * W, 0.55 * H))
+    rng = np.random.default_rng(3)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=3)
+    uv = truth.project(sedan.mesh.sample_points(2000))
+    box = [float(uv[:, 0].min()) + rng.uniform(-3, 3), float(uv[:, 1].min()), float(uv[:, 0].max()),
+           float(uv[:, 1].max()) + rng.uniform(-3, 3)]
+    free = register(photo, sedan, renderer=renderer)
+    boxed = register(photo, sedan, bbox=box, renderer=renderer)
+    assert boxed.start_source == "bbox" and free.start_source == "none"
+    assert projection_error(sedan, boxed.camera, truth) < 2.0
+    assert projection_error(sedan, free.camera, truth) < 2.0
+
+
+@pytest.mark.slow
+def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(sedan, renderer):
+    truth = _framed(sedan, 35.0, 10.0, 0.97, 1.0)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
+    start = _framed(sedan, 45.0, 4.0, 0.8, 10.0)
+    before = rotation_error(start.R, truth.R)
+    assert 8.0 < before < 15.0
+    result = register(photo, sedan, init_camera=start, renderer=renderer)
+    # The start's focal length is ten times the truth's: the search narrowed to its views finds
+    # the rotation and most of the perspective, on the edges at the search size.
+    assert rotation_error(result.camera.R, truth.R) < 0.5 * before
+    assert projection_error(sedan, result.camera, truth) < 0.25 * projection_error(sedan, start, truth)
+    assert projection_error(sedan, result.camera, truth) < 10.0 and not result.failed
+    assert result.pose_stage == "structure" and "sphere" in result.timings
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["noise", "near-black", "one-pixel"])
+def test_a_start_camera_on_a_photo_with_no_vehicle_fails(sedan, renderer, kind):
+    rng = np.random.default_rng(11)
+    if kind == "noise":
+        photo = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    elif kind == "near-black":
+        photo = rng.integers(0, 6, (H, W, 3), dtype=np.uint8)
+    else:
+        photo = np.zeros((H, W, 3), np.uint8)
+        photo[H // 2, W // 2] = 255
+    start = _framed(sedan, 45.0, 8.0, 0.7, 1.5)
+    result = register(photo, sedan, init_camera=start, renderer=renderer,
+                      options=RegistrationOptions.from_flat(max_size=320))
+    assert result.failed and result.confidence is not None and result.confidence < 0.5
+    if kind == "one-pixel":
+        assert result.checks["two_way"] > 0.7  # no edge to explain: the outline explains nothing
+    else:
+        assert result.checks["edge_lead"] < 0.2  # edges everywhere or nowhere: no view leads
+
+
+@pytest.mark.slow
+def test_a_photo_without_a_vehicle_is_flagged_failed(sedan, renderer):
+    rng = np.random.default_rng(4)
+    photo = (np.clip(background(H, W, rng), 0, 1) * 255).astype(np.uint8)
+    result = register(photo, sedan, renderer=renderer)
+    assert result.failed and result.confidence is not None and result.confidence < 0.5
