@@ -277,7 +277,7 @@ def sphere_search(
         progress("view sphere: placing templates", 0, float("nan"))
     allowed = _allowed(templates, init, search.sphere_spread)
     placed = match(templates, first.chamfer.edges.distance, first.chamfer.tau, small, allowed=allowed,
-                   scales=search.sphere_scales, min_iou=search.sphere_iou)
+                   scales=search.sphere_scales, min_iou=search.sphere_iou, stride=search.sphere_stride)
     principal = (0.5 * (w - 1), 0.5 * (h - 1)) if init is None else tuple(init.scaled(w, h).K[:2, 2])
     ranked: list[Pose] = []
     for k in range(len(small)):

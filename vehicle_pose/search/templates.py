@@ -259,7 +259,8 @@ def _score(points: Any, bins: Any, first: int, last: int, costs: Any, f: float, 
 
 @njit(cache=True, parallel=True)
 def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs: Any, min_seen: float, targets: Any,
-           scales: Any, step: float, min_iou: float, cx: float, cy: float) -> tuple[Any, Any]:  # pragma: no cover
+           scales: Any, step: float, min_iou: float, cx: float, cy: float,
+           stride: float) -> tuple[Any, Any]:  # pragma: no cover
     n_bins, H, W = costs.shape
     T = offsets.size - 1
     B = targets.shape[0]
@@ -281,7 +282,7 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
                 f = base * scales[si]
                 bw, bh = f * (bx1 - bx0), f * (by1 - by0)
                 st = max(1.0, step * max(bw, bh))
-                coarse = 2.0 * st
+                coarse = stride * st
                 # The centre's image u is such that the template's box [u + f bx0, u + f bx1]
                 # overlaps the target by at least min_iou of the target's width (an IoU of
                 # min_iou needs that much), and the same for v; every other step in between
@@ -341,7 +342,7 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
 def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: float, targets: list[Box], *,
           allowed: npt.NDArray[np.bool_] | None = None, scales: tuple[float, float] = (0.8, 2.0),
           scale_step: float = 1.1, step: float = 0.04, min_iou: float = 0.6, min_seen: float = 0.5,
-          principal: tuple[float, float] | None = None) -> Placements:
+          principal: tuple[float, float] | None = None, stride: int = 1) -> Placements:
     """Every allowed template's best placement about each target box.
 
     Parameters
@@ -368,6 +369,9 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
         share in view is not tried.
     principal : (cx, cy), keyword-only
         The photo's principal point (pixels); the image centre by default.
+    stride : int, keyword-only
+        The positions are first tried every ``stride`` steps, then the best of them again
+        one step either way (1: every step).
     """
     if not targets:
         raise ValueError("matching needs at least one target box")
@@ -380,5 +384,5 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
     best, where = _match(templates.points, templates.bins, templates.offsets, templates.boxes, mask, costs,
                          float(min_seen),
                          np.asarray(targets, np.float64), factors.astype(np.float64), float(step), float(min_iou),
-                         float(cx), float(cy))
+                         float(cx), float(cy), float(stride))
     return Placements(best, where[..., 0], where[..., 1], where[..., 2])
