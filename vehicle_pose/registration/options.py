@@ -286,9 +286,10 @@ class Search(_Group):
     model's edges fit the photo's better (``docs/decisions/0015-one-footing.md``).
     """
 
-    starts: int = option(4, "without a start camera: distinct start poses screened", low=1, high=12, public=True)
-    refine: int = option(2, "without a start camera: screened poses refined at full size", low=1, high=4,
-                         public=True)
+    starts: int = option(4, "the classic chain (pose_search classic): distinct start poses screened", low=1,
+                         high=12, public=True)
+    refine: int = option(2, "the classic chain (pose_search classic): screened poses refined at full size", low=1,
+                         high=4, public=True)
     screen_size: int = option(200, "longer side of the photo for screening (pixels)", low=16)
     window_margin: float | None = option(WINDOW_MARGIN, "window around the vehicle's box (longer sides; None: "
                                          "the whole photo)", low=0.0)
@@ -304,8 +305,8 @@ class Search(_Group):
     region_fit: float = option(0.3, "view-search score under which the first region is kept", low=0.0)
     min_confidence: float = option(0.5, "confidence under which a pose found without a start camera fails",
                                    low=0.0)
-    photo_search: bool = option(True, "without a start camera: where the shading does not explain the photo, "
-                                "search on the parts' colours and the edges", public=True,
+    photo_search: bool = option(True, "the classic chain (pose_search classic): where the shading does not "
+                                "explain the photo, search on the parts' colours and the edges", public=True,
                                 flag="--no-photo-search")
     photo_loss: float = option(0.2, "loss over its maximum above which a pose that is not credible is searched "
                                "again by the photo search (0.2: where the confidence's fit score is 0)",
@@ -321,7 +322,7 @@ class Search(_Group):
     pose_search: str = option("sphere", "the search without a start camera: the view-sphere search (sphere, "
                               "docs/decisions/0020-view-sphere-search.md) or the chain of decisions 0007-0019 "
                               "(classic: region, wheels and view grid, shading refinement, photo search), kept to "
-                              "compare against", choices=("sphere", "classic"))
+                              "compare against", choices=("sphere", "classic"), public=True)
     sphere_spread: float = option(30.0, "with a start camera: degrees from its rotation of the views searched",
                                   low=1.0, high=180.0)
     sphere_scales: tuple[float, float] = option((0.8, 2.0), "scales of the placed templates, factors of the one "
