@@ -28,7 +28,7 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from importlib import metadata as _metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -43,6 +43,8 @@ if TYPE_CHECKING:
 __all__ = ["PREPARATION", "ModelStore", "Levels", "default_cache_dir", "default_budgets"]
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
 
 PREPARATION = 1
 """Version of what an entry holds; raise it whenever preparation gives different arrays."""
@@ -283,6 +285,20 @@ class ModelStore:
         return mesh, levels
 
 
+def _get_mesh(entry: _Entry, mesh_id: Any) -> Mesh:
+    return entry.get_mesh(mesh_id)
+
+
+def _put_mesh(mesh: Mesh) -> Callable[[_Entry], tuple[Any, dict[str, Any]]]:
+    """How :meth:`Levels._once` keeps a mesh: its arrays, its description under ``meshes``."""
+
+    def write(entry: _Entry) -> tuple[Any, dict[str, Any]]:
+        mesh_id, desc = entry.put_mesh(mesh)
+        return mesh_id, {"meshes": {mesh_id: desc}}
+
+    return write
+
+
 def discard(entry: _Entry) -> None:
     shutil.rmtree(entry.folder, ignore_errors=True)
 
@@ -312,63 +328,72 @@ class Levels:
         self._arrays: dict[tuple[str, str], dict[str, npt.NDArray[Any]]] = {}
         self._lock = threading.RLock()
 
-    def _stored(self, section: str, key: str) -> Mesh | None:
+    def _stored(self, section: str, key: str, read: Callable[[_Entry, Any], _T]) -> _T | None:
+        """What the entry's ``section`` holds under ``key``, read by ``read(entry, reference)``;
+        None where it holds nothing (an unreadable entry is discarded)."""
         if self.entry is None:
             return None
         try:
-            mesh_id = self.entry.manifest().get(section, {}).get(key)
-            if mesh_id is None:
-                mesh_id = self.entry.manifest(reload=True).get(section, {}).get(key)
-            return None if mesh_id is None else self.entry.get_mesh(mesh_id)
+            ref = self.entry.manifest().get(section, {}).get(key)
+            if ref is None:
+                ref = self.entry.manifest(reload=True).get(section, {}).get(key)
+            return None if ref is None else read(self.entry, ref)
         except CorruptEntry as exc:
             log.warning("prepared model %s is unreadable (%s); computing again", self.entry.folder, exc)
             discard(self.entry)
             self.entry = None
             return None
 
-    def _store(self, section: str, key: str, mesh: Mesh) -> None:
+    def _store(self, section: str, key: str, write: Callable[[_Entry], tuple[Any, dict[str, Any]]]) -> None:
+        """Keeps a value in the entry: ``write(entry)`` puts its files and returns the reference
+        to keep under ``key`` in ``section`` and any other manifest sections to merge."""
         if self.entry is None:
             return
         entry = self.entry
         try:
-            mesh_id, desc = entry.put_mesh(mesh)
+            ref, more = write(entry)
 
             def add(data: dict[str, Any]) -> None:
                 if data.get("preparation") != PREPARATION:
                     raise CorruptEntry("entry replaced meanwhile")
-                data.setdefault("meshes", {})[mesh_id] = desc
-                data.setdefault(section, {})[key] = mesh_id
+                for name, items in more.items():
+                    data.setdefault(name, {}).update(items)
+                data.setdefault(section, {})[key] = ref
 
             entry.update(add)
         except (OSError, CorruptEntry) as exc:
             log.warning("cannot add to prepared model %s: %s", entry.folder, exc)
             self.entry = None
 
-    def _once(self, found: dict[Any, Mesh], key: Any, section: str, stored: str, make: Callable[[], Mesh]) -> Mesh:
+    def _once(self, found: dict[Any, _T], key: Any, section: str, stored: str, make: Callable[[], _T],
+              read: Callable[[_Entry, Any], _T],
+              write: Callable[[_T], Callable[[_Entry], tuple[Any, dict[str, Any]]]]) -> _T:
         """``found[key]``: from memory, the entry's ``section`` under ``stored``, or ``make``.
         ``make`` runs outside the lock, so that one thread can make a level while another
-        draws the exterior pass of the last; two threads making the same mesh get the same
-        arrays, and the first is kept."""
+        draws the exterior pass of the last; two threads making the same value get the same
+        arrays, and the first is kept. ``read`` and ``write`` say how the value is kept in the
+        entry (:func:`_get_mesh`, :func:`_put_mesh` for a mesh)."""
         with self._lock:
-            mesh = found.get(key)
-            if mesh is None:
-                mesh = self._stored(section, stored)
-                if mesh is not None:
-                    found[key] = mesh
-        if mesh is not None:
-            return mesh
-        mesh = make()
+            value = found.get(key)
+            if value is None:
+                value = self._stored(section, stored, read)
+                if value is not None:
+                    found[key] = value
+        if value is not None:
+            return value
+        value = make()
         with self._lock:
             if key not in found:
-                self._store(section, stored, mesh)
-                found[key] = mesh
+                self._store(section, stored, write(value))
+                found[key] = value
             return found[key]
 
     def lod(self, max_faces: int, make: Callable[[int], Mesh]) -> Mesh:
         """The level for ``max_faces``: from memory, the entry, or ``make`` (:meth:`_once`)."""
         if self.mesh.n_faces <= max_faces:
             return self.mesh
-        return self._once(self._lods, max_faces, "lods", str(max_faces), lambda: make(max_faces))
+        return self._once(self._lods, max_faces, "lods", str(max_faces), lambda: make(max_faces),
+                          _get_mesh, _put_mesh)
 
     def _exterior_key(self, max_faces: int, renderer: Renderer) -> str:
         from vehicle_pose.render.exterior import exterior_faces
@@ -385,7 +410,8 @@ class Levels:
         from vehicle_pose.render.exterior import exterior_faces
 
         key = self._exterior_key(max_faces, renderer)
-        return self._once(self._exteriors, key, "exteriors", key, lambda: exterior_faces(renderer, mesh))
+        return self._once(self._exteriors, key, "exteriors", key, lambda: exterior_faces(renderer, mesh),
+                          _get_mesh, _put_mesh)
 
     def missing(self, budgets: Sequence[int], renderer: Renderer) -> list[int]:
         """The budgets whose exterior pass is neither in memory nor in the entry."""
@@ -401,45 +427,18 @@ class Levels:
     def arrays(self, section: str, key: str, make: Callable[[], dict[str, npt.NDArray[Any]]]
                ) -> dict[str, npt.NDArray[Any]]:
         """Named arrays made once (``make``) and kept in memory and in the entry's ``section``
-        under ``key`` (the view templates of :mod:`vehicle_pose.search.templates`)."""
-        with self._lock:
-            found = self._arrays.get((section, key))
-            if found is not None:
-                return found
-            if self.entry is not None:
-                try:
-                    names = self.entry.manifest().get(section, {}).get(key)
-                    if names is None:
-                        names = self.entry.manifest(reload=True).get(section, {}).get(key)
-                    if names is not None:
-                        found = {name: self.entry.get_array(digest) for name, digest in names.items()}
-                except (CorruptEntry, AttributeError) as exc:
-                    log.warning("prepared model %s is unreadable (%s); computing again", self.entry.folder, exc)
-                    discard(self.entry)
-                    self.entry = None
-            if found is not None:
-                self._arrays[(section, key)] = found
-                return found
-        made = make()
-        with self._lock:
-            if (section, key) in self._arrays:
-                return self._arrays[(section, key)]
-            self._arrays[(section, key)] = made
-            if self.entry is not None:
-                entry = self.entry
-                try:
-                    names = {name: entry.put_array(a) for name, a in made.items()}
+        under ``key`` (the view templates of :mod:`vehicle_pose.search.templates`;
+        :meth:`_once`)."""
 
-                    def add(data: dict[str, Any]) -> None:
-                        if data.get("preparation") != PREPARATION:
-                            raise CorruptEntry("entry replaced meanwhile")
-                        data.setdefault(section, {})[key] = names
+        def read(entry: _Entry, names: Any) -> dict[str, npt.NDArray[Any]]:
+            if not isinstance(names, dict):
+                raise CorruptEntry(f"{section} {key} is not a table of arrays")
+            return {name: entry.get_array(digest) for name, digest in names.items()}
 
-                    entry.update(add)
-                except (OSError, CorruptEntry) as exc:
-                    log.warning("cannot add to prepared model %s: %s", entry.folder, exc)
-                    self.entry = None
-            return made
+        def write(made: dict[str, npt.NDArray[Any]]) -> Callable[[_Entry], tuple[Any, dict[str, Any]]]:
+            return lambda entry: ({name: entry.put_array(a) for name, a in made.items()}, {})
+
+        return self._once(self._arrays, (section, key), section, key, make, read, write)
 
     def wheels(self, axes: str, make: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """Estimated wheel metadata for the axes ``"up forward"``, kept with the entry."""
