@@ -279,8 +279,7 @@ class EdgeLoss:
     def __call__(self, frame: Frame) -> float:
         if frame.labels.size == 0:
             return 1.0
-        edges = _model_edges(frame.labels, frame.attrs, int(frame.x0), int(frame.y0), frame.width, frame.height,
-                             float(self.albedo_step), float(self.crease))
+        edges = model_edges(frame, albedo_step=self.albedo_step, crease=self.crease)
         total, count = _forward_cost(edges, self.edges.distance, int(frame.x0), int(frame.y0), float(self.tau))
         if count < self.min_pixels:
             return 1.0
@@ -356,16 +355,13 @@ class TwoWayChamfer:
         if frame.labels.size == 0:
             return 1.0, 1.0
         x0, y0 = int(frame.x0), int(frame.y0)
-        model = _model_edges(frame.labels, frame.attrs, x0, y0, frame.width, frame.height,
-                             float(self.albedo_step), float(self.crease))
+        model = model_edges(frame, albedo_step=self.albedo_step, crease=self.crease)
         total, count = _forward_cost(model, self.edges.distance, x0, y0, float(self.tau))
         if count < self.min_pixels:
             return 1.0, 1.0
         forward = float(total / count / self.tau)
         if self.rows.size == 0:
             return forward, 1.0 if self.outside == 0 else self.clutter
-        # The model's edges per orientation bin (within one bin, as for the photo's), their
-        # distance transforms over the window grown by the truncation.
         # The model's edges per orientation bin (within one bin, as for the photo's), on a grid
         # of half the resolution (a cell holds a bin when one of its pixels does): their distance
         # transforms over the window grown by the truncation cost a quarter, and a distance is

@@ -257,6 +257,20 @@ def _score(points: Any, bins: Any, first: int, last: int, costs: Any, f: float, 
     return acc / seen
 
 
+
+@njit(cache=True, nogil=True)
+def _keep(best: Any, where: Any, t: int, k: int, c: float, f: float, u: float, v: float
+          ) -> bool:  # pragma: no cover - compiled
+    """Keeps placement (f, u, v) of template ``t`` about target ``k`` where its cost ``c`` is the
+    lowest so far."""
+    if c < best[t, k]:
+        best[t, k] = c
+        where[t, k, 0] = f
+        where[t, k, 1] = u
+        where[t, k, 2] = v
+        return True
+    return False
+
 @njit(cache=True, parallel=True)
 def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs: Any, min_seen: float, targets: Any,
            scales: Any, step: float, min_iou: float, cx: float, cy: float,
@@ -311,17 +325,13 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
                         inter = iw * ih
                         if inter / ((cx1 - cx0) * (cy1 - cy0) + t_area - inter) < min_iou:
                             continue
-                        c = _score(points, bins, first, last, costs, f, u, v, cx, cy, min_seen)
-                        if c < best[t, k]:
-                            best[t, k] = c
-                            where[t, k, 0] = f
-                            where[t, k, 1] = u
-                            where[t, k, 2] = v
+                        if _keep(best, where, t, k, _score(points, bins, first, last, costs, f, u, v, cx, cy,
+                                                           min_seen), f, u, v):
                             fine = st
             if not np.isfinite(best[t, k]):
                 continue
-            # About the best placement: the steps of the coarse grid halved, and the scale a
-            # half step either way.
+            # About the best placement: one step of the position either way (with a stride of
+            # one, the places between those tried), and the scale a half step either way.
             f0, u0, v0 = where[t, k, 0], where[t, k, 1], where[t, k, 2]
             half = np.sqrt(scales[1] / scales[0]) if scales.size > 1 else 1.0
             for fs in (1.0 / half, 1.0, half):
@@ -330,12 +340,8 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
                         if fs == 1.0 and du == 0.0 and dv == 0.0:
                             continue
                         f, u, v = f0 * fs, u0 + du * fine, v0 + dv * fine
-                        c = _score(points, bins, first, last, costs, f, u, v, cx, cy, min_seen)
-                        if c < best[t, k]:
-                            best[t, k] = c
-                            where[t, k, 0] = f
-                            where[t, k, 1] = u
-                            where[t, k, 2] = v
+                        _keep(best, where, t, k, _score(points, bins, first, last, costs, f, u, v, cx, cy, min_seen),
+                              f, u, v)
     return best, where
 
 
