@@ -39,7 +39,7 @@ def confidence(checks: dict[str, float]) -> float:
     of a vehicle, the chamfer's lead over the median view of the grid (``edge_lead``), 0.5 at
     0.2 and 1 from 0.35 (``docs/decisions/0015-one-footing.md``).
     """
-    if "two_way" in checks and not checks.get("photo_search"):
+    if "two_way" in checks:
         return _edge_confidence(checks)
     unique = (checks.get("margin", 0.0) + 0.05) / 0.40
     if checks.get("photo_search"):

@@ -338,8 +338,7 @@ class Search(_Group):
     sphere_refine: int = option(2, "ranked poses of each target refined", low=1, high=16)
     sphere_hold: int = option(100, "evaluations of each refinement's first stage, its rotation held", low=0)
     sphere_clutter: float = option(0.55, "cost of a photo edge outside a target's box but inside another "
-                                   "target's, in the two-way chamfer of the targets (a negative value: the "
-                                   "photo's mean truncated distance)", low=-1.0, high=1.0)
+                                   "target's, in the two-way chamfer of the targets", low=0.0, high=1.0)
     sphere_evaluations: int = option(200, "evaluations of each refinement's second stage", low=0)
     sphere_step: float = option(0.3, "first steps of the refinement, in the view coordinates' steps", low=1e-3,
                                 high=10.0)

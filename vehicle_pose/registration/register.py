@@ -143,12 +143,12 @@ def register(
         # options it reports (docs/decisions/0007-no-hint-search.md).
         options = options.replace(edge_weight=0.0)
         found, swept, stage = sphere_pose(work, model, options, renderer, optimizer, box=rect, foreground=fg,
-                                             progress=progress)
+                                          progress=progress)
         timings["sphere"] = swept.seconds
         levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
         checks = (swept.checks | fit_checks(work, model, found, None, options.color, renderer)
                   | edge_evidence(work, model, found.camera, options, renderer))
-        listed = swept.listed(model.templates(renderer))
+        listed = swept.listed()
         start, method = swept.ranked[0].camera, "view-sphere"
         timings["grabcut"] = grabcut_seconds
         return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
@@ -177,7 +177,7 @@ def register(
                 timings["sphere"] = near.seconds
                 found, stage = sphere_fit(work, model, near, options, renderer), "structure"
                 grabcut_seconds += found.grabcut_seconds
-                listed = near.listed(model.templates(renderer))
+                listed = near.listed()
                 spent.append(found)
         levels = found.levels
         checks = (fit_checks(work, model, found, None, options.color, renderer)

@@ -31,7 +31,7 @@ import numpy.typing as npt
 from vehicle_pose.errors import CameraError, PoseError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.parametrize import ViewParams
-from vehicle_pose.loss.edges import PhotoEdges, TwoWayChamfer
+from vehicle_pose.loss.edges import PhotoEdges, TwoWayChamfer, photo_edges
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized
@@ -74,23 +74,25 @@ class Pose:
 
 @dataclass
 class SphereSearch:
-    """The refined poses (best first), the ranked ones, the targets and the time spent."""
+    """The refined poses (best first), the ranked ones, the targets, the time spent, the checks
+    and the templates searched."""
 
     refined: list[Pose]
     ranked: list[Pose]
     targets: list[Target]
     seconds: float
     checks: dict[str, float]
+    templates: ViewTemplates
 
     @property
     def best(self) -> Pose:
         return self.refined[0]
 
-    def listed(self, templates: ViewTemplates) -> list[dict[str, Any]]:
+    def listed(self) -> list[dict[str, Any]]:
         """The refined hypotheses as the result reports them."""
         out = []
         for p in self.refined:
-            az, el, d = templates.views[p.template] if p.template >= 0 else (np.nan, np.nan, np.nan)
+            az, el, d = self.templates.views[p.template] if p.template >= 0 else (np.nan, np.nan, np.nan)
             out.append({"source": "view-sphere" if p.template >= 0 else "start", "azimuth": float(az),
                         "elevation": float(el), "distance": float(d),
                         "target": list(self.targets[p.target].box), "ranked": p.ranked, "cost": p.cost,
@@ -100,11 +102,13 @@ class SphereSearch:
 
 class _Cost:
     """The two-way chamfer of the model's exterior at a camera for the working photo, scored at
-    the search size, plus the box term with a client's box."""
+    the search size over the target box ``region`` (the photo's ``edges``, found once for every
+    target; its edges outside ``region`` but inside ``among`` cost ``clutter`` each), plus the
+    box term with a client's box."""
 
     def __init__(self, image: npt.NDArray[np.uint8], model: VehicleModel, region: Box, box: Box | None,
-                 options: RegistrationOptions, renderer: Renderer, edges: PhotoEdges | None = None,
-                 among: Box | None = None, clutter: float = 1.0) -> None:
+                 options: RegistrationOptions, renderer: Renderer, edges: PhotoEdges, among: Box,
+                 clutter: float) -> None:
         st = options.structure
         self.chamfer = TwoWayChamfer(image, region=region, tau=st.anchor_tau, crease=options.terms.edge_crease,
                                      edges=edges, among=among, clutter=clutter)
@@ -267,11 +271,8 @@ def sphere_search(
     client = None if box is None else small[0]
     union: Box = (min(b[0] for b in small), min(b[1] for b in small), max(b[2] for b in small),
                   max(b[3] for b in small))
-    first = _Cost(image, model, small[0], client, options, renderer)
-    tau = first.chamfer.tau
-    chance = float((np.minimum(first.chamfer.edges.distance, tau) / tau).mean())
-    clutter = chance if search.sphere_clutter < 0 else search.sphere_clutter
-    costs = [_Cost(image, model, b, client, options, renderer, first.chamfer.edges, union, clutter) for b in small]
+    edges = photo_edges(image)
+    costs = [_Cost(image, model, b, client, options, renderer, edges, union, search.sphere_clutter) for b in small]
     first = costs[0]
     if progress is not None:
         progress("view sphere: placing templates", 0, float("nan"))
@@ -315,7 +316,7 @@ def sphere_search(
         "margin": (min(rivals) - best.cost) / max(min(rivals), 1e-9) if rivals else 1.0,
         "rank_lead": 1.0 - best.cost / max(typical, 1e-9),
     }
-    return SphereSearch(refined, ranked, targets, time.perf_counter() - t0, checks)
+    return SphereSearch(refined, ranked, targets, time.perf_counter() - t0, checks, templates)
 
 
 def sphere_fit(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereSearch, options: RegistrationOptions,
