@@ -148,20 +148,17 @@ class Target:
 
 def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | None, box: Box | None) -> list[Target]:
     """The boxes the vehicle is looked for in: the client's box (the vehicle segmented in it by
-    GrabCut); else, with a start camera, the box of its projection; else the photo's frame (a
-    claims photo is mostly the car) and the regions GrabCut finds from rectangles 8-30 % inside
-    the border (one box each, those that differ)."""
+    GrabCut); else the photo's frame (a claims photo is mostly the car), with a start camera the
+    box of its projection first, and the regions GrabCut finds from rectangles 8-30 % inside the
+    border (one box each, those that differ)."""
     H, W = work.shape[:2]
     if box is not None:
         return [Target(box, find_vehicle(work, rect=box).mask)]
     out = [Target((0.0, 0.0, W - 1.0, H - 1.0), np.ones((H, W), bool))]
     if init is not None:
-        uv = init.project(model.mesh.sample_points(600))
-        lo = np.clip(uv.min(0), 0, [W - 1, H - 1]) if np.all(np.isfinite(uv)) else np.zeros(2)
-        hi = np.clip(uv.max(0), 0, [W - 1, H - 1]) if np.all(np.isfinite(uv)) else np.zeros(2)
-        if hi[0] - lo[0] < 4 or hi[1] - lo[1] < 4:
+        b = _seen_box(init, model, 4.0)
+        if b is None:
             raise PoseError("the start pose puts the model out of the photo")
-        b: Box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
         if _box_iou(b, out[0].box) < 0.8:
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
     for border in REGION_BORDERS:
@@ -169,6 +166,19 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
         if all(_box_iou(region.box, o.box) < 0.8 for o in out):
             out.append(Target(region.box, region.mask))
     return out
+
+
+def _seen_box(camera: Camera, model: VehicleModel, least: float) -> Box | None:
+    """The box of the model's projection cut to the frame; None where a point is behind the
+    camera or the box is narrower or lower than ``least`` pixels."""
+    uv = camera.project(model.mesh.sample_points(600))
+    if not np.all(np.isfinite(uv)):
+        return None
+    lo = np.clip(uv.min(0), 0, [camera.width - 1, camera.height - 1])
+    hi = np.clip(uv.max(0), 0, [camera.width - 1, camera.height - 1])
+    if hi[0] - lo[0] < least or hi[1] - lo[1] < least:
+        return None
+    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
 def _box_iou(a: Box, b: Box) -> float:
@@ -398,14 +408,9 @@ def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Came
     """
     w, h = _search_size(work, options)
     cam = camera.scaled(w, h)
-    uv = cam.project(model.mesh.sample_points(600))
-    if not np.all(np.isfinite(uv)):
+    box = _seen_box(cam, model, 2.0)
+    if box is None:
         return {"two_way": 2.0, "edge_lead": 0.0}
-    lo = np.clip(uv.min(0), 0, [w - 1, h - 1])
-    hi = np.clip(uv.max(0), 0, [w - 1, h - 1])
-    if hi[0] - lo[0] < 2 or hi[1] - lo[1] < 2:
-        return {"two_way": 2.0, "edge_lead": 0.0}
-    box: Box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
     image = resized(work, w, h)
     chamfer = TwoWayChamfer(image, region=box, tau=options.structure.anchor_tau, crease=options.terms.edge_crease)
     mesh = model.exterior(options.pyramid.min_faces, renderer)

@@ -41,8 +41,8 @@ from numba import njit, prange
 from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.loss.edges import model_edges
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.model.metadata import parse_axis
 from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.search.views import upright_axes
 
 __all__ = ["TemplateGrid", "ViewTemplates", "Placements", "match", "turn_to"]
 
@@ -159,10 +159,7 @@ class ViewTemplates:
         """Draw the templates of ``model`` over ``grid`` (about 3 s for 1440 views on two cores)."""
         mesh = model.exterior(grid.faces, renderer)
         centre, radius = model.mesh.sphere
-        up = parse_axis(model.info.up)
-        forward = model.wheels.front_axle_center - model.wheels.rear_axle_center
-        forward = forward - (forward @ up) * up
-        forward /= np.linalg.norm(forward)
+        up, forward = upright_axes(model)
         samples = model.mesh.sample_points(600)
         rng = np.random.default_rng(_SEED)
         views, rotations, points, bins, boxes = [], [], [], [], []

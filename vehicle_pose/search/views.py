@@ -35,6 +35,7 @@ __all__ = [
     "parse_bbox",
     "fit_to_box",
     "box_overflow",
+    "upright_axes",
     "view_camera",
     "refocus",
     "score_cameras",
@@ -160,15 +161,21 @@ def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, sh
     return float(out)
 
 
+def upright_axes(model: VehicleModel) -> tuple[FloatArray, FloatArray]:
+    """The model's up axis and its forward direction (rear axle to front, in the ground plane),
+    unit vectors in mesh coordinates: what azimuth and elevation are measured from."""
+    up = parse_axis(model.info.up)
+    fwd = model.wheels.front_axle_center - model.wheels.rear_axle_center
+    fwd = fwd - (fwd @ up) * up
+    return up, fwd / np.linalg.norm(fwd)
+
+
 def view_camera(
     model: VehicleModel, azimuth: float, elevation: float, roll: float, box: Box, width: int, height: int, focal: float
 ) -> Camera:
     """A camera at the given view (degrees) whose projection of the model fills ``box``."""
     centre, radius = model.mesh.sphere
-    up = parse_axis(model.info.up)
-    fwd = model.wheels.front_axle_center - model.wheels.rear_axle_center
-    fwd = fwd - (fwd @ up) * up
-    fwd /= np.linalg.norm(fwd)
+    up, fwd = upright_axes(model)
     cam = look_at_camera(centre, fwd, up, azimuth_deg=azimuth, elevation_deg=elevation,
                          distance=4.0 * radius, focal=focal, width=width, height=height)
     if roll:
