@@ -200,7 +200,8 @@ def stored_response(key: str | None, media_type: str, what: str) -> Response:
 
 def links(job: Registration) -> Links:
     base = f"/v1/registrations/{job.id}"
-    return Links(self=base, photo=f"{base}/photo", overlay=f"{base}/overlay.png" if job.overlay_key else None)
+    return Links(self=base, photo=f"{base}/photo", overlay=f"{base}/overlay.png" if job.overlay_key else None,
+                 parts=f"{base}/parts.png" if job.parts_key else None)
 
 
 def job_out(job: Registration) -> RegistrationOut:

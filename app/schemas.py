@@ -64,6 +64,7 @@ class Links(BaseModel):
     self: str
     photo: str
     overlay: str | None = None
+    parts: str | None = None
 
 
 class RegistrationOut(BaseModel):

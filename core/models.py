@@ -106,6 +106,12 @@ class Registration(Base):
     error_detail: Mapped[str | None] = mapped_column(Text, default=None)
 
     @property
+    def parts_key(self) -> str | None:
+        """Where the part map PNG is kept: written with the overlay by every registration whose
+        result lists its parts (:func:`parts_key`)."""
+        return parts_key(self.id) if self.overlay_key and self.result and "parts" in self.result else None
+
+    @property
     def ended(self) -> bool:
         """The job succeeded or failed; it will not run again."""
         return self.status in (JobStatus.succeeded.value, JobStatus.failed.value)
@@ -131,6 +137,11 @@ class Registration(Base):
         if status is JobStatus.failed:
             self.error_type = error_type or "internal-error"
             self.error_detail = detail or ""
+
+
+def parts_key(job_id: str) -> str:
+    """The storage key of a registration's part map PNG."""
+    return f"parts/{job_id}.png"
 
 
 def requeued(*where: ColumnElement[bool]) -> Update:

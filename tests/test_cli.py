@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -51,14 +52,20 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow
 def test_cli_registers_the_shipped_sample(tmp_path):
-    out, overlay = tmp_path / "r" / "result.json", tmp_path / "overlay.png"
+    out, overlay, parts = tmp_path / "r" / "result.json", tmp_path / "overlay.png", tmp_path / "p" / "parts.png"
     proc = _cli("register", "examples/sedan.jpg", "--model", "sedan", "--init-camera", "examples/sedan_init.json",
-                "--out", str(out), "--overlay", str(overlay))
+                "--out", str(out), "--overlay", str(overlay), "--parts", str(parts))
     assert proc.returncode == 0, proc.stderr
     result = json.loads(out.read_text())
     assert result["model"]["id"] == "sedan" and result["start"]["source"] == "init_camera"
     with Image.open(overlay) as img:
         assert img.size == (800, 600)
+    with Image.open(parts) as img:
+        assert img.size == (800, 600) and img.mode == "P"
+        legend = json.loads(img.info["legend"])
+        counts = np.bincount(np.asarray(img).ravel(), minlength=len(legend) + 1)
+    listed = {p["part"]: p["pixels"] for p in result["parts"]}
+    assert listed and all(counts[legend[part]] == pixels for part, pixels in listed.items())
     from vehicle_pose import Camera, ModelLibrary
 
     from helpers import projection_error

@@ -45,7 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model id from the library, a mesh file path, a,b,c (identify among these ids) "
                         "or auto (identify among every library model)")
     r.add_argument("--out", required=True, help="where to write result.json")
-    r.add_argument("--overlay", help="where to write the overlay PNG")
+    r.add_argument("--overlay", help="where to write the overlay PNG (parts tinted, with a legend)")
+    r.add_argument("--parts", help="where to write the part map: an indexed PNG, each pixel its part's label "
+                                   "(the legend in result.json's parts and the PNG's legend text)")
     r.add_argument("--init-camera", help="start camera JSON {K, R, t, width, height}")
     r.add_argument("--bbox", help="vehicle box X0,Y0,X1,Y1 in pixels (the search's start without --init-camera, "
                    "GrabCut's bound with it)")
@@ -178,8 +180,13 @@ def _register(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(data, indent=2) + "\n")
     if args.overlay:
-        image = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels, shade=args.shade)
+        image = draw_overlay(photo, model.mesh, result.camera, wheels=model.wheels, shade=args.shade,
+                             parts=result.parts)
         save_png(args.overlay, image)
+    if args.parts and result.parts is not None:
+        where = Path(args.parts)
+        where.parent.mkdir(parents=True, exist_ok=True)
+        where.write_bytes(result.parts.png())
     conf = "" if result.confidence is None else f", confidence {result.confidence:.2f}"
     print(
         f"registered {model.info.id}: loss {result.loss:.4f}{conf}, {result.evaluations} evaluations, "

@@ -26,7 +26,7 @@ from sqlalchemy.exc import OperationalError
 from core.config import Settings, get_settings
 from core.db import session_scope, updated_rows
 from core.library import get_library
-from core.models import JobStatus, Registration, requeued, utcnow
+from core.models import JobStatus, Registration, parts_key, requeued, utcnow
 from core.storage import ObjectMissing, Storage, StorageUnavailable, get_storage
 from vehicle_pose import (
     Camera,
@@ -206,9 +206,11 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     model = result.model
     base = overlay_base(photo)
     del photo  # a large photo's array need not outlive the registration
-    overlay = draw_overlay(base, model.mesh, result.camera, wheels=model.wheels)
+    overlay = draw_overlay(base, model.mesh, result.camera, wheels=model.wheels, parts=result.parts)
     overlay_key, thumb_key = f"overlays/{job.id}.png", f"thumbnails/{job.id}.jpg"
     storage.put(overlay_key, encode_image(overlay, ".png"), "image/png")
+    if result.parts is not None:
+        storage.put(parts_key(job.id), result.parts.png(), "image/png")
     storage.put(thumb_key, thumbnail(overlay), "image/jpeg")
     with session_scope() as s:
         record = s.get(Registration, job.id)

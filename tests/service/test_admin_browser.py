@@ -78,6 +78,12 @@ def test_admin_page_lists_and_opens_a_finished_job(service, browser, sedan, rend
     overlay = page.locator("#overlay")
     overlay.wait_for()
     assert page.evaluate("img => img.complete && img.naturalWidth === 640", overlay.element_handle())
+    table = page.locator("#parts")
+    table.wait_for()
+    rows = table.locator("tbody tr")
+    assert rows.count() >= 5
+    swatch = rows.first.locator(".swatch")
+    assert page.evaluate("e => getComputedStyle(e).backgroundColor", swatch.element_handle()) != "rgba(0, 0, 0, 0)"
     pose = json.loads(page.locator("#pose").inner_text())
     assert len(pose["cam_K"]) == 9 and pose["model"]["id"] == "sedan"
     page.screenshot(path=str(tmp_path / "admin-detail.png"), full_page=True)

@@ -49,6 +49,12 @@ def test_upload_poll_result_and_overlay(service, scene, sedan):
         overlay = c.get(body["links"]["overlay"])
         assert overlay.status_code == 200 and overlay.headers["content-type"] == "image/png"
         assert Image.open(io.BytesIO(overlay.content)).size == (640, 480)
+        parts = c.get(body["links"]["parts"])
+        assert parts.status_code == 200 and parts.headers["content-type"] == "image/png"
+        labels = Image.open(io.BytesIO(parts.content))
+        assert labels.size == (640, 480) and labels.mode == "P"
+        seen = {p["part"] for p in result["parts"]}
+        assert "hood" in seen or "trunk" in seen or "roof" in seen
         stored = c.get(body["links"]["photo"])
         assert stored.status_code == 200 and stored.content == png and stored.headers["content-type"] == "image/png"
 

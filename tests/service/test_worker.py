@@ -177,6 +177,8 @@ def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, se
     assert projection_error(sedan, Camera.from_dict(job.result["camera"]), truth) < 1.0
     assert store.get(job.overlay_key)[:8] == b"\x89PNG\r\n\x1a\n"
     assert store.get(job.thumbnail_key)[:3] == b"\xff\xd8\xff"
+    assert job.parts_key is not None and store.get(job.parts_key)[:8] == b"\x89PNG\r\n\x1a\n"
+    assert job.result["parts"] and all(p["pixels"] > 0 for p in job.result["parts"])
     json.dumps(job.result)
 
 

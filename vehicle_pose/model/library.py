@@ -23,6 +23,7 @@ from vehicle_pose.model.metadata import UNITS, ModelInfo, WheelGeometry, estimat
 
 if TYPE_CHECKING:
     from vehicle_pose.model.mesh import Mesh
+    from vehicle_pose.model.parts import PartLabels
     from vehicle_pose.model.store import Levels, ModelStore
     from vehicle_pose.render.renderer import Renderer
     from vehicle_pose.search.templates import TemplateGrid, ViewTemplates
@@ -94,6 +95,16 @@ class VehicleModel:
         arrays = self.levels.arrays("templates", key, lambda: ViewTemplates.build(self, renderer, grid).arrays())
         return ViewTemplates.from_arrays(arrays)
 
+    def part_labels(self) -> PartLabels:
+        """Every face's part (:func:`~vehicle_pose.model.parts.label_faces`), labelled once per
+        model, axes and wheel metadata and kept with its prepared levels."""
+        from vehicle_pose.model.parts import LABELLING, PartLabels, label_faces
+
+        assert self.levels is not None
+        key = f"{LABELLING}|{self.info.up} {self.info.forward}|{self.wheels.to_dict()}"
+        arrays = self.levels.arrays("parts", key, lambda: label_faces(self.mesh, self.info.up, self.wheels).arrays())
+        return PartLabels.from_arrays(arrays)
+
     def prepare(self, renderer: Renderer, budgets: Sequence[int] | None = None,
                 progress: Callable[[str], None] | None = None) -> None:
         """Compute (or read back) every level the registration's defaults use and its exterior
@@ -119,6 +130,7 @@ class VehicleModel:
                 mesh = self.exterior(b, renderer)
                 if progress is not None:
                     progress(f"level {b}: {mesh.n_faces} faces ({time.perf_counter() - start:.1f} s in)")
+            self.part_labels()
         finally:
             pool.shutdown(cancel_futures=True)  # after a failure, the levels not yet begun
         self.mesh.forget_simplification()  # every level is made: its record is dead weight

@@ -26,6 +26,7 @@ from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
 from vehicle_pose.registration.sphere import edge_evidence, sphere_fit, sphere_pose, sphere_search
 from vehicle_pose.registration.structure import find_structure, structure_fit
+from vehicle_pose.render.parts import part_map
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, make_optimizer
 from vehicle_pose.search.views import Box, fit_to_box, parse_bbox
@@ -152,7 +153,7 @@ def register(
         start, method = swept.ranked[0].camera, "view-sphere"
         timings["grabcut"] = grabcut_seconds
         return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
-                       W0, H0, time.perf_counter() - t_start, stage)
+                       W0, H0, t_start, stage, renderer)
     if init_camera is not None:
         source, method = "init_camera", "given"
         timings["start"] = 0.0
@@ -207,15 +208,18 @@ def register(
                 levels, spent = found.levels, [*spent, found]
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
-                   W0, H0, time.perf_counter() - t_start, stage)
+                   W0, H0, t_start, stage, renderer)
 
 
 def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: VehicleModel,
             options: RegistrationOptions, source: str, method: str, start: Camera, checks: dict[str, float],
             listed: list[dict[str, Any]], timings: dict[str, float], W0: int, H0: int,
-            seconds: float, stage: str) -> RegistrationResult:
-    """The result at the photo's own size."""
+            t_start: float, stage: str, renderer: Renderer) -> RegistrationResult:
+    """The result at the photo's own size, with its part map (:mod:`vehicle_pose.render.parts`)."""
     final = found.camera.scaled(W0, H0)
+    t = time.perf_counter()
+    parts = part_map(model, final, renderer)
+    timings["parts"] = time.perf_counter() - t
     side = visible_side(final, model.wheels.side("left"))
     timings["optimize"] = sum(level.seconds for level in levels)
     conf = confidence(checks) if "region_iou" in checks or "edge_lead" in checks else None
@@ -225,7 +229,7 @@ def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: Vehi
         loss=levels[-1].loss,
         evaluations=sum(level.evaluations for f in spent for level in f.levels),
         restarts=sum(level.restarts for f in spent for level in f.levels),
-        seconds=seconds,
+        seconds=time.perf_counter() - t_start,
         model=model,
         start_source=source,
         start_camera=start.scaled(W0, H0),
@@ -239,4 +243,5 @@ def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: Vehi
         checks=checks,
         candidates=listed,
         pose_stage=stage,
+        parts=parts,
     )

@@ -12,6 +12,7 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.pose import Theta
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.registration.options import RegistrationOptions
+from vehicle_pose.render.parts import PartMap
 
 __all__ = ["LevelReport", "RegistrationResult"]
 
@@ -48,7 +49,9 @@ class RegistrationResult:
     search run, screening included; ``levels`` are the winning pose's levels. ``pose_stage``
     says which stage's pose is the result: ``shading`` (the loss's fit) or ``structure`` (edges
     and box, kept where the loss does not explain the photo;
-    ``docs/decisions/0012-structure-first.md``).
+    ``docs/decisions/0012-structure-first.md``). ``parts`` is the part map at the final pose
+    (:mod:`vehicle_pose.render.parts`): which part each pixel of the photo shows; the JSON
+    lists the visible parts.
     """
 
     camera: Camera
@@ -70,6 +73,7 @@ class RegistrationResult:
     checks: dict[str, float] = field(default_factory=dict)
     candidates: list[dict[str, Any]] = field(default_factory=list)
     pose_stage: str = "shading"
+    parts: PartMap | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON result: camera, theta, BOP-style fields, loss, counts, timings."""
@@ -91,6 +95,7 @@ class RegistrationResult:
                 "estimated": list(info.estimated),
             },
             "pose_stage": self.pose_stage,
+            "parts": self.parts.to_list() if self.parts is not None else [],
             "confidence": self.confidence,
             "failed": self.failed,
             "checks": self.checks,

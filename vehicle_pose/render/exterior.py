@@ -27,7 +27,7 @@ from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.render.gl import thread_context
 from vehicle_pose.render.renderer import Renderer, uniform
 
-__all__ = ["exterior_faces", "sphere_directions"]
+__all__ = ["FACE_ID_FRAGMENT_SHADER", "FACE_ID_VERTEX_SHADER", "exterior_faces", "sphere_directions"]
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 # carrying their id, passed on flat. This gives the same pixels as reading ``gl_PrimitiveID`` in
 # the fragment shader from an indexed draw, and Mesa's llvmpipe draws it 1.3-1.5x faster (it
 # takes a slower path to hand fragments the primitive id).
-_ID_VERTEX_SHADER = """
+FACE_ID_VERTEX_SHADER = """
 #version 330
 uniform mat4 mvp;
 in vec3 in_pos;
@@ -47,7 +47,7 @@ void main() {
 }
 """
 
-_ID_FRAGMENT_SHADER = """
+FACE_ID_FRAGMENT_SHADER = """
 #version 330
 flat in int face_id;
 layout(location = 0) out float out_id;
@@ -203,7 +203,7 @@ def _count_views(renderer: Renderer, views: list[npt.NDArray[np.float64]], point
     (:func:`_sampled_faces`, on a software rasteriser; every face elsewhere)."""
     ctx = renderer.ctx
     base = len(faces)
-    program = renderer.extra_program("face-ids", _ID_VERTEX_SHADER, _ID_FRAGMENT_SHADER)
+    program = renderer.extra_program("face-ids", FACE_ID_VERTEX_SHADER, FACE_ID_FRAGMENT_SHADER)
     index = np.arange(3 * base, dtype=np.int32)
     select = _compiled_sampled_faces() if software else None
     seen = np.empty(size * size, np.float32)

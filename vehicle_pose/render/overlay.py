@@ -12,6 +12,8 @@ import numpy.typing as npt
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.model.metadata import WheelGeometry
+from vehicle_pose.model.parts import COLOURS
+from vehicle_pose.render.parts import PartMap, palette
 from vehicle_pose.render.renderer import Renderer, headlight
 
 __all__ = ["draw_overlay", "encode_image", "save_png"]
@@ -30,11 +32,15 @@ def draw_overlay(
     wheels: WheelGeometry | None = None,
     shade: float = 0.0,
     thickness: int | None = None,
+    parts: PartMap | None = None,
+    tint: float = 0.45,
 ) -> npt.NDArray[np.uint8]:
     """The photo (H, W, 3) uint8 RGB with the model's outline drawn at ``camera``.
 
     The silhouette is drawn in yellow, boundaries between material parts in cyan and the wheel
     centres in red. ``shade`` in [0, 1] blends a head-light shaded render of the model in.
+    With a part map (:mod:`vehicle_pose.render.parts`, for the same camera), each part is tinted
+    in its colour (``tint``: how much) and a legend of the parts seen is drawn in a corner.
     """
     r = renderer if renderer is not None else Renderer()
     H, W = photo.shape[:2]
@@ -50,6 +56,8 @@ def draw_overlay(
         gray = np.clip(headlight(frame.covered(frame.attrs)), 0.0, 1.0) * 255.0
         cov = labels > 0
         out[cov] = ((1.0 - shade) * out[cov] + shade * gray[:, None]).astype(np.uint8)
+    if parts is not None:
+        _tint_parts(out, parts, tint)
     edges = np.zeros((H, W), np.uint8)
     edges[:, 1:] |= labels[:, 1:] != labels[:, :-1]
     edges[1:, :] |= labels[1:, :] != labels[:-1, :]
@@ -63,7 +71,41 @@ def draw_overlay(
         uv = cam.project(wheels.wheel_centres())
         for x, y in uv[np.all(np.isfinite(uv), axis=1)]:
             cv2.circle(out, (int(round(x)), int(round(y))), 2 * t + 2, _WHEELS, -1, lineType=cv2.LINE_AA)
+    if parts is not None:
+        _legend(out, parts)
     return out
+
+
+def _tint_parts(out: npt.NDArray[np.uint8], parts: PartMap, tint: float) -> None:
+    """Blend each part's colour into the pixels it covers."""
+    H, W = out.shape[:2]
+    labels = parts.labels
+    if labels.shape != (H, W):
+        labels = cv2.resize(labels, (W, H), interpolation=cv2.INTER_NEAREST)
+    colours = np.array(palette(), np.float32).reshape(256, 3)
+    cov = labels > 0
+    out[cov] = ((1.0 - tint) * out[cov] + tint * colours[labels[cov]]).astype(np.uint8)
+
+
+def _legend(out: npt.NDArray[np.uint8], parts: PartMap, most: int = 14) -> None:
+    """A legend of the largest parts seen (colour and name), top left, on a dark panel."""
+    H, W = out.shape[:2]
+    shown = parts.parts[:most]
+    if not shown:
+        return
+    scale = max(0.35, min(W, H) / 900)
+    line = int(round(22 * scale))
+    box = int(round(14 * scale))
+    width = int(round(230 * scale))
+    height = line * len(shown) + line // 2
+    x0, y0 = int(round(8 * scale)), int(round(8 * scale))
+    x1, y1 = min(W, x0 + width), min(H, y0 + height)
+    out[y0:y1, x0:x1] = (0.35 * out[y0:y1, x0:x1]).astype(np.uint8)
+    for k, view in enumerate(shown):
+        y = y0 + line // 2 + k * line
+        cv2.rectangle(out, (x0 + 6, y), (x0 + 6 + box, y + box), COLOURS[view.part], -1)
+        cv2.putText(out, view.part.replace("_", " "), (x0 + 12 + box, y + box - 1), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.45 * scale, (255, 255, 255), max(1, round(scale)), cv2.LINE_AA)
 
 
 def encode_image(rgb: npt.NDArray[np.uint8], ext: str = ".png", params: Sequence[int] = ()) -> bytes:

@@ -17,6 +17,7 @@ from app.problems import Problem
 from app.registrations import stored_response, visible_job
 from core.library import get_library
 from core.models import Client, JobStatus, Registration
+from vehicle_pose.model.parts import COLOURS
 
 router = APIRouter(prefix="/admin", tags=["admin"], include_in_schema=False)
 templates = Jinja2Templates(directory=Path(__file__).resolve().parents[2] / "templates")
@@ -68,10 +69,12 @@ def recent(
 
 @router.get("/registrations/{job_id}", response_class=HTMLResponse)
 def detail(request: Request, job_id: str, admin: AdminClient, session: SessionDep) -> HTMLResponse:
-    """One registration: photo, overlay and the pose JSON."""
+    """One registration: photo, overlay (the parts in colours), the parts' legend and the pose JSON."""
     job = visible_job(session, admin, job_id)
     pose = json.dumps(job.result, indent=2) if job.result else None
-    return templates.TemplateResponse(request, "admin_detail.html", {"job": job, "pose": pose})
+    parts = [dict(p, colour="#{:02x}{:02x}{:02x}".format(*COLOURS.get(p["part"], (0, 0, 0))))
+             for p in (job.result or {}).get("parts", [])]
+    return templates.TemplateResponse(request, "admin_detail.html", {"job": job, "pose": pose, "parts": parts})
 
 
 @router.get("/registrations/{job_id}/thumbnail.jpg")
@@ -82,6 +85,11 @@ def thumbnail(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
 @router.get("/registrations/{job_id}/overlay.png")
 def overlay(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
     return stored_response(visible_job(session, admin, job_id).overlay_key, "image/png", "overlay")
+
+
+@router.get("/registrations/{job_id}/parts.png")
+def parts(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
+    return stored_response(visible_job(session, admin, job_id).parts_key, "image/png", "part map")
 
 
 @router.get("/registrations/{job_id}/photo")

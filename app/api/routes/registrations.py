@@ -110,6 +110,15 @@ def overlay(job_id: str, client: CurrentClient, session: SessionDep) -> Response
     return stored_response(visible_job(session, client, job_id).overlay_key, "image/png", "overlay")
 
 
+@router.get("/{job_id}/parts.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}, 404: _PROBLEM})
+def parts(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
+    """The part map at the registered pose: an indexed PNG of the photo's size, each pixel the label of the
+    car's part it shows (0: none); the palette holds the parts' colours and the ``legend`` text chunk maps
+    part ids to labels. The job's ``result.parts`` lists the visible parts."""
+    return stored_response(visible_job(session, client, job_id).parts_key, "image/png", "part map")
+
+
 @router.get("/{job_id}/photo", response_class=Response, responses={200: {"content": {"image/*": {}}}, 404: _PROBLEM})
 def photo_of(job_id: str, client: CurrentClient, session: SessionDep) -> Response:
     """The photo as uploaded."""

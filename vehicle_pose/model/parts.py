@@ -1,0 +1,374 @@
+"""The car's parts: a fixed vocabulary, and a part label for every face of a model.
+
+A claim is priced per panel, so a registered model is most useful as a map of which part is
+where in the photo (:mod:`vehicle_pose.render.parts`). This module says which part each face
+of a model's mesh belongs to, in a fixed :data:`VOCABULARY` (left and right are the car's own,
+as its driver sees them).
+
+Labels come from the mesh where it names its parts: a part's geometry and material names are
+matched against a table of synonyms (:data:`SYNONYMS`: "bonnet" is the hood, "tailgate" the
+trunk), and where a name says what a part is but not where (a "door", a "bumper", a "wheel"),
+its place in the model's own frame says which one (front or rear, left or right). Faces whose
+part names nothing in the table are labelled by a geometric partition of the model's own frame
+(:func:`geometric_labels`): its up axis, its forward direction and the wheel metadata's axles,
+track and radius. Fenders are the sides over the front wheels, the rear quarters the sides over
+the rear ones, the doors the sides between, the bumpers the ends beyond the wheel arches below
+the bonnet line, hood and trunk the surfaces facing up in front of and behind the cabin. Those
+labels are estimates, and the model's :class:`PartLabels` say which parts were estimated.
+
+The procedural models of ``vehicle_models/`` name every part by construction
+(:mod:`vehicle_pose.model.procedural`), so their labels are exact.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from vehicle_pose.model.mesh import Mesh
+from vehicle_pose.model.metadata import WheelGeometry, parse_axis
+
+__all__ = ["LABELLING", "VOCABULARY", "COLOURS", "SYNONYMS", "PartLabels", "label_faces", "geometric_labels",
+           "name_part", "model_frame", "part_index"]
+
+LABELLING = 1
+"""Version of the labelling; raise it whenever the labels of a mesh change (prepared models
+keep their labels under it)."""
+
+VOCABULARY: tuple[str, ...] = (
+    "front_bumper", "rear_bumper", "hood", "roof", "trunk", "windscreen", "rear_window",
+    "front_fender_left", "front_fender_right", "rear_quarter_left", "rear_quarter_right",
+    "front_door_left", "front_door_right", "rear_door_left", "rear_door_right",
+    "front_door_window_left", "front_door_window_right", "rear_door_window_left", "rear_door_window_right",
+    "quarter_window_left", "quarter_window_right", "mirror_left", "mirror_right",
+    "headlamp_left", "headlamp_right", "taillamp_left", "taillamp_right",
+    "wheel_front_left", "wheel_front_right", "wheel_rear_left", "wheel_rear_right",
+    "other",
+)
+"""The part ids; a label is an id's index + 1 (0 is no part: the background)."""
+
+# One colour per part, told apart at a glance: left and right share a hue, the right darker.
+_HUES: dict[str, tuple[int, int, int]] = {
+    "front_bumper": (230, 25, 75), "rear_bumper": (128, 0, 0), "hood": (255, 225, 25), "roof": (0, 130, 200),
+    "trunk": (245, 130, 48), "windscreen": (70, 240, 240), "rear_window": (0, 128, 128),
+    "front_fender": (240, 50, 230), "rear_quarter": (145, 30, 180), "front_door": (60, 180, 75),
+    "rear_door": (170, 255, 195), "front_door_window": (100, 200, 255), "rear_door_window": (160, 220, 255),
+    "quarter_window": (200, 235, 255), "mirror": (255, 215, 180), "headlamp": (255, 255, 200),
+    "taillamp": (255, 80, 80), "wheel_front": (128, 128, 128), "wheel_rear": (90, 90, 90), "other": (210, 245, 60),
+}
+
+
+def _colour(part: str) -> tuple[int, int, int]:
+    base = re.sub(r"_(left|right)$", "", part)
+    r, g, b = _HUES[base]
+    if part.endswith("_right"):
+        return (int(r * 0.7), int(g * 0.7), int(b * 0.7))
+    return (r, g, b)
+
+
+COLOURS: dict[str, tuple[int, int, int]] = {p: _colour(p) for p in VOCABULARY}
+"""The RGB colour each part is drawn in (label images, overlays, the admin page)."""
+
+
+def part_index(part: str) -> int:
+    """The label of a part id (its index in :data:`VOCABULARY` + 1)."""
+    return VOCABULARY.index(part) + 1
+
+
+# What a name says a part is, tried in order (the first kind whose words a name holds wins, so
+# "door glass" is a window, not a door). A kind says what but not always where: the place of
+# the part's faces in the model's frame says front or rear, left or right (:func:`_placed`).
+SYNONYMS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("windscreen", ("windscreen", "windshield", "front glass", "front screen", "front window")),
+    ("rear_window", ("rear window", "back window", "rear glass", "back glass", "rear screen", "backlight",
+                     "back light glass", "heckscheibe")),
+    ("front_door_window", ("front door window", "front door glass")),
+    ("rear_door_window", ("rear door window", "rear door glass", "back door window", "back door glass")),
+    ("quarter_window", ("quarter window", "quarter glass")),
+    ("side_window", ("door glass", "door window", "side window", "side glass", "window")),
+    ("mirror", ("mirror", "wing mirror", "side view")),
+    ("headlamp", ("headlight", "headlamp", "head lamp", "head light", "front light", "front lamp", "drl",
+                  "fog")),
+    ("taillamp", ("taillight", "taillamp", "tail lamp", "tail light", "rear light", "rear lamp", "brake light",
+                  "stop lamp")),
+    ("wheel", ("wheel", "tyre", "tire", "rim", "hub", "brake disc", "caliper")),
+    ("front_bumper", ("front bumper", "front fascia", "grille", "grill", "front apron", "spoiler front")),
+    ("rear_bumper", ("rear bumper", "rear fascia", "diffuser", "exhaust", "rear apron")),
+    ("bumper", ("bumper", "fascia")),
+    ("hood", ("hood", "bonnet", "engine cover")),
+    ("trunk", ("trunk", "boot", "tailgate", "liftgate", "hatch", "decklid", "deck lid", "rear gate")),
+    ("roof", ("roof", "sunroof", "moonroof", "top")),
+    ("rear_quarter", ("quarter panel", "rear fender", "rear wing", "quarter")),
+    ("front_fender", ("fender", "mudguard", "front wing", "wing")),
+    ("rear_door", ("rear door", "back door")),
+    ("front_door", ("front door",)),
+    ("door", ("door",)),
+    ("other", ("interior", "seat", "dashboard", "steering", "engine", "chassis", "underbody", "floor")),
+)
+"""Part kinds and the words in a geometry or material name that say them (lower case)."""
+
+
+def _words(text: str) -> str:
+    """A name as spaced lower-case words: ``FrontDoor_L.001`` as ``front door l 001``."""
+    text = re.sub(r"([a-z])([A-Z])", r"\1 \2", text)
+    return " " + re.sub(r"[^a-z0-9]+", " ", text.lower()).strip() + " "
+
+
+def name_part(*names: str | None) -> str | None:
+    """The part kind a geometry's names say (a key of :data:`SYNONYMS`), or None."""
+    text = " ".join(_words(n) for n in names if n)
+    for kind, words in SYNONYMS:
+        if any(f" {w} " in text for w in words):
+            return kind
+    return None
+
+
+@dataclass(frozen=True)
+class Frame:
+    """The model's own frame (mesh units): ``x`` forward from the middle of the wheelbase,
+    ``y`` to the car's left, ``z`` up from the ground; with the wheel metadata in it."""
+
+    origin: npt.NDArray[np.float64]
+    axes: npt.NDArray[np.float64]  # (3, 3): rows forward, left, up in mesh coordinates
+    front_axle: float
+    rear_axle: float
+    radius: float
+
+    def local(self, points: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        return np.asarray((points - self.origin) @ self.axes.T)
+
+    def turn(self, vectors: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        return np.asarray(vectors @ self.axes.T)
+
+
+def model_frame(up_axis: str, wheels: WheelGeometry) -> Frame:
+    """The model's own frame from its up axis and wheel metadata."""
+    up = parse_axis(up_axis)
+    fwd = wheels.front_axle_center - wheels.rear_axle_center
+    fwd = fwd - (fwd @ up) * up
+    fwd = fwd / np.linalg.norm(fwd)
+    left = np.cross(up, fwd)
+    if left @ wheels.axle_direction < 0:  # a mesh mirrored in its file: trust the axle's left
+        left = -left
+    origin = 0.5 * (wheels.front_axle_center + wheels.rear_axle_center) - wheels.wheel_radius * up
+    half = 0.5 * float((wheels.front_axle_center - wheels.rear_axle_center) @ fwd)
+    return Frame(origin, np.stack([fwd, left, up]), half, -half, float(wheels.wheel_radius))
+
+
+@dataclass(frozen=True)
+class PartLabels:
+    """A label for every face of a mesh (its parts' faces in order) and whether it was
+    estimated by the geometric partition (True) or read from the mesh's names (False)."""
+
+    labels: npt.NDArray[np.uint8]
+    estimated: npt.NDArray[np.bool_]
+
+    def arrays(self) -> dict[str, npt.NDArray[np.generic]]:
+        return {"labels": self.labels, "estimated": self.estimated}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, npt.NDArray[np.generic]]) -> PartLabels:
+        return cls(np.asarray(arrays["labels"], np.uint8), np.asarray(arrays["estimated"], np.bool_))
+
+
+def _faces(mesh: Mesh) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64],
+                                 npt.NDArray[np.int64]]:
+    """Every face's centroid, unit normal (sign arbitrary) and area (mesh frame), and the index
+    of the part it belongs to."""
+    cents, normals, areas, owner = [], [], [], []
+    for k, p in enumerate(mesh.parts):
+        tri = p.vertices[p.faces.astype(np.int64)]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(cross, axis=1)
+        cents.append(tri.mean(1))
+        normals.append(cross / np.maximum(norm, 1e-30)[:, None])
+        areas.append(0.5 * norm)
+        owner.append(np.full(len(p.faces), k))
+    return np.concatenate(cents), np.concatenate(normals), np.concatenate(areas), np.concatenate(owner)
+
+
+@dataclass(frozen=True)
+class _Shape:
+    """What the geometric partition measures of a body in the model's frame."""
+
+    front: float  # the bumpers' ends, forward coordinate
+    rear: float
+    top: float  # the roof's height
+    belt: float  # the height of the windows' lower edge
+    cabin: tuple[float, float]  # the forward range of the greenhouse (rear, front)
+    arch: float  # how far a wheel arch reaches from its axle
+    door_split: float  # where the front doors end and the rear doors begin
+
+
+def _shape(c: npt.NDArray[np.float64], areas: npt.NDArray[np.float64], glass: npt.NDArray[np.bool_],
+           frame: Frame) -> _Shape:
+    x, z = c[:, 0], c[:, 2]
+    front, rear = float(np.percentile(x, 99.8)), float(np.percentile(x, 0.2))
+    top = float(np.percentile(z, 99.8))
+    if glass.sum() >= 8 and areas[glass].sum() > 0:
+        belt = float(np.percentile(z[glass], 5))
+        cabin = (float(np.percentile(x[glass], 1)), float(np.percentile(x[glass], 99)))
+    else:  # no glass named: the greenhouse is what stands above two thirds of the height
+        belt = 0.66 * top
+        high = z > belt + 0.5 * (top - belt)
+        cabin = (float(x[high].min()), float(x[high].max())) if high.any() else (frame.rear_axle, frame.front_axle)
+    arch = ARCH * frame.radius
+    door_lo, door_hi = frame.rear_axle + arch, frame.front_axle - arch
+    return _Shape(front, rear, top, belt, cabin, arch, 0.5 * (door_lo + door_hi))
+
+
+ARCH = 1.8
+"""How far the panels around a wheel reach from its axle, in wheel radii: the fenders and rear
+quarters end, and the doors begin, this far in front of or behind the axles."""
+
+
+def _side(y: npt.NDArray[np.float64]) -> npt.NDArray[np.str_]:
+    return np.where(y >= 0.0, "left", "right")
+
+
+def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shape, frame: Frame
+                ) -> npt.NDArray[np.object_]:
+    """Windscreen, rear window or the side window over each door (quarter windows behind)."""
+    out = np.empty(len(c), object)
+    side = _side(c[:, 1])
+    out[:] = [f"quarter_window_{sd}" for sd in side]
+    front_door = c[:, 0] >= s.door_split
+    rear_door = (c[:, 0] < s.door_split) & (c[:, 0] >= frame.rear_axle + s.arch)
+    out[front_door] = [f"front_door_window_{sd}" for sd in side[front_door]]
+    out[rear_door] = [f"rear_door_window_{sd}" for sd in side[rear_door]]
+    facing = np.abs(n[:, 1]) < 0.6  # not a side window: the glass faces forward, back or up
+    mid = 0.5 * (s.cabin[0] + s.cabin[1])
+    out[facing & (c[:, 0] >= mid)] = "windscreen"
+    out[facing & (c[:, 0] < mid)] = "rear_window"
+    out[facing & (n[:, 2] > 0.9)] = "roof"
+    return out
+
+
+def _body_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shape, frame: Frame
+               ) -> npt.NDArray[np.object_]:
+    """The body panel of each face, from its place and the way it faces."""
+    x, z = c[:, 0], c[:, 2]
+    side = _side(c[:, 1])
+    out = np.empty(len(c), object)
+    # the sides: fender over the front wheel, quarter over the rear one, doors between
+    out[:] = [f"front_door_{sd}" for sd in side]
+    rear_door = x < s.door_split
+    out[rear_door] = [f"rear_door_{sd}" for sd in side[rear_door]]
+    fender = x >= frame.front_axle - s.arch
+    out[fender] = [f"front_fender_{sd}" for sd in side[fender]]
+    quarter = x <= frame.rear_axle + s.arch
+    out[quarter] = [f"rear_quarter_{sd}" for sd in side[quarter]]
+    # the surfaces facing up: hood before the cabin, trunk behind it, roof over it
+    up = n[:, 2] > 0.55
+    out[up & (x > s.cabin[1])] = "hood"
+    out[up & (x < s.cabin[0])] = "trunk"
+    above = z > s.belt + 0.02 * s.top
+    roof = above & (x >= s.cabin[0]) & (x <= s.cabin[1]) & (np.abs(n[:, 1]) < 0.6)
+    out[roof] = "roof"
+    # the ends beyond the wheel arches: below the wheels' tops the bumpers, above them the
+    # faces that look forward or back belong to the hood or the trunk (or tailgate)
+    lid = 2.0 * frame.radius
+    ahead, behind = x > frame.front_axle + s.arch, x < frame.rear_axle - s.arch
+    end = np.abs(n[:, 0]) > 0.7
+    out[ahead & (z >= lid) & end & ~above] = "hood"
+    out[behind & (z >= lid) & end & ~above] = "trunk"
+    out[ahead & (z < lid)] = "front_bumper"
+    out[behind & (z < lid)] = "rear_bumper"
+    return out
+
+
+def _outward(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shape) -> npt.NDArray[np.float64]:
+    """Normals turned away from the car's middle line (mesh winding is not trusted)."""
+    mid = np.column_stack([np.clip(c[:, 0], s.rear + 0.3 * (s.front - s.rear), s.front - 0.3 * (s.front - s.rear)),
+                           np.zeros(len(c)), np.full(len(c), 0.45 * s.top)])
+    flip = np.sum((c - mid) * n, axis=1) < 0
+    return np.where(flip[:, None], -n, n)
+
+
+def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
+                     kinds: npt.NDArray[np.object_] | None = None) -> npt.NDArray[np.uint8]:
+    """A label for every face of ``mesh`` from its place in the model's own frame alone.
+
+    ``kinds`` (one per face, a key of :data:`SYNONYMS` or None) narrows faces whose names say
+    what they are: glass is a window, a lamp a head or tail lamp, a wheel the wheel it is
+    nearest. The faces of material kind glass, tyre, wheel and light are treated the same way
+    when their names say nothing more.
+    """
+    frame = model_frame(up_axis, wheels)
+    cm, nm, areas, owner = _faces(mesh)
+    c, n = frame.local(cm), frame.turn(nm)
+    material = np.array([p.kind for p in mesh.parts], object)[owner]
+    kinds = kinds if kinds is not None else np.full(len(c), None, object)
+    unnamed = np.array([k is None for k in kinds], bool)
+    glass = np.isin(kinds, ["windscreen", "rear_window", "side_window", "front_door_window", "rear_door_window",
+                            "quarter_window"]) | ((material == "glass") & unnamed)
+    s = _shape(c, areas, glass, frame)
+    n = _outward(c, n, s)
+    out = _body_part(c, n, s, frame)
+    side = _side(c[:, 1])
+    g = _glass_part(c, n, s, frame)
+    out[glass] = g[glass]
+    lamp = (material == "light") & unnamed
+    head = (kinds == "headlamp") | (lamp & (c[:, 0] >= 0))
+    tail = (kinds == "taillamp") | (lamp & (c[:, 0] < 0))
+    out[head] = [f"headlamp_{sd}" for sd in side[head]]
+    out[tail] = [f"taillamp_{sd}" for sd in side[tail]]
+    wheel = (kinds == "wheel") | (np.isin(material, ["tyre", "wheel"]) & unnamed)
+    axle = np.where(c[:, 0] >= 0, "front", "rear")
+    out[wheel] = [f"wheel_{a}_{sd}" for a, sd in zip(axle[wheel], side[wheel], strict=True)]
+    mirror = kinds == "mirror"
+    out[mirror] = [f"mirror_{sd}" for sd in side[mirror]]
+    out[(kinds == "other") | ((material == "other") & unnamed)] = "other"
+    return np.array([part_index(p) for p in out], np.uint8)
+
+
+def _placed(kind: str, c: npt.NDArray[np.float64], split: float) -> str:
+    """A named kind put where its faces are: ``c`` is the part's mean centroid in the model's
+    frame, ``split`` where the front doors end."""
+    sd = "left" if c[1] >= 0 else "right"
+    if kind == "bumper":
+        return "front_bumper" if c[0] >= 0 else "rear_bumper"
+    if kind == "door":
+        return f"front_door_{sd}" if c[0] >= split else f"rear_door_{sd}"
+    if kind in ("front_door", "rear_door", "front_fender", "rear_quarter", "mirror", "headlamp", "taillamp",
+                "front_door_window", "rear_door_window", "quarter_window"):
+        return f"{kind}_{sd}"
+    if kind == "wheel":
+        return f"wheel_{'front' if c[0] >= 0 else 'rear'}_{sd}"
+    return kind  # front_bumper, rear_bumper, hood, roof, trunk, windscreen, rear_window, other
+
+
+def label_faces(mesh: Mesh, up_axis: str, wheels: WheelGeometry) -> PartLabels:
+    """Every face's part: from the mesh's names where they say it (:func:`name_part`), from the
+    geometric partition elsewhere (:func:`geometric_labels`, marked estimated).
+
+    A named part is one part (a door, a wheel) placed as a whole: front or rear, left or right
+    by the mean of its faces' centroids. Side windows and parts that hold both sides of the car
+    in one geometry (a "bumper" of both corners is fine; "wheels" holding four) are placed face
+    by face.
+    """
+    frame = model_frame(up_axis, wheels)
+    named = [name_part(p.name) for p in mesh.parts]
+    counts = [len(p.faces) for p in mesh.parts]
+    kinds = np.repeat(np.array(named, object), counts)
+    geometric = geometric_labels(mesh, up_axis, wheels, kinds)
+    labels = geometric.copy()
+    estimated = np.repeat(np.array([k is None for k in named]), counts)
+    start = 0
+    split = 0.5 * ((frame.rear_axle + ARCH * frame.radius) + (frame.front_axle - ARCH * frame.radius))
+    for p, kind, count in zip(mesh.parts, named, counts, strict=True):
+        if kind is not None and kind not in ("side_window", "wheel", "mirror", "headlamp", "taillamp"):
+            tri = p.vertices[p.faces.astype(np.int64)].mean(1)
+            local = frame.local(tri)
+            spread = local[:, 1]
+            if kind in ("door", "front_door", "rear_door", "front_fender", "rear_quarter", "front_door_window",
+                        "rear_door_window", "quarter_window") and \
+                    spread.min() < -0.25 * wheels.track_width and spread.max() > 0.25 * wheels.track_width:
+                start += count  # both sides in one geometry: the geometric partition places it
+                continue
+            labels[start:start + count] = part_index(_placed(kind, local.mean(0), split))
+        start += count
+    return PartLabels(labels, estimated)
