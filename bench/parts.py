@@ -1,14 +1,10 @@
 """The part map: how well the geometric partition and a registration label the car's pixels.
 
-Usage: .venv/bin/python bench/parts.py [--views N] [--registrations N] [--seed S] [--tag TAG]
+Usage: .venv/bin/python bench/parts.py [--registrations N] [--seed S] [--tag TAG]
 
-For every shipped model (labelled by construction), over ``--views`` random views (azimuth
-uniform, elevation 0-35 degrees, the car filling 50-90 % of a 640x480 frame):
+For every shipped model, over ``--registrations`` random views (azimuth uniform, elevation
+0-35 degrees, the car filling 50-90 % of a 640x480 frame):
 
-- **geometric partition**: the share of the car's pixels that the geometric partition alone
-  (:func:`vehicle_pose.model.parts.geometric_labels`, as for a mesh that names nothing but its
-  materials) labels as the construction does; over the body panels' pixels (glass, wheels and
-  lamps left out: their material says what they are) and over all pixels.
 - **registered**: for ``--registrations`` of those views, a synthetic photo registered from a
   rough start (6 degrees, 3 % of the distance, focal 10 % off): the share of the car's pixels
   (by the true pose's map) whose part the registered pose's map gets right, and the seconds the
@@ -27,7 +23,6 @@ import numpy as np
 
 from vehicle_pose import register
 from vehicle_pose.model.library import ModelLibrary
-from vehicle_pose.model.parts import VOCABULARY, PartLabels, geometric_labels, label_faces
 from vehicle_pose.render.overlay import draw_overlay
 from vehicle_pose.render.parts import palette, part_map
 from vehicle_pose.render.renderer import Renderer
@@ -36,13 +31,9 @@ from vehicle_pose.search.views import view_camera
 
 from common import perturbed, table, write_report, write_sheet
 
-_PANELS = {k + 1 for k, p in enumerate(VOCABULARY)
-           if not any(w in p for w in ("window", "windscreen", "wheel", "lamp", "other"))}
-
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--views", type=int, default=40)
     ap.add_argument("--registrations", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tag", default="")
@@ -55,53 +46,39 @@ def main() -> None:
     for model_id in lib.ids():
         model = lib.load(model_id)
         built = model.part_labels()
-        shaped = PartLabels(geometric_labels(model.mesh, model.info.up, model.wheels),
-                            np.ones(model.mesh.n_faces, bool))
-        assert np.array_equal(built.labels, label_faces(model.mesh, model.info.up, model.wheels).labels)
-        panel_agree, all_agree, registered, seconds = [], [], [], []
-        for k in range(args.views):
+        registered, seconds = [], []
+        for k in range(args.registrations):
             az, el = float(rng.uniform(0, 360)), float(rng.uniform(0, 35))
             fill = float(rng.uniform(0.5, 0.9))
             w, h = 640 * fill, 480 * fill
             box = (320 - w / 2, 240 - h / 2, 320 + w / 2, 240 + h / 2)
             truth = view_camera(model, az, el, 0.0, box, 640, 480, float(rng.uniform(600, 2400)))
             true_map = part_map(model, truth, renderer, labels=built).image()
-            geo = part_map(model, truth, renderer, labels=shaped).image()
             car = true_map > 0
-            panels = np.isin(true_map, list(_PANELS))
-            all_agree.append(float((geo[car] == true_map[car]).mean()))
-            panel_agree.append(float((geo[panels] == true_map[panels]).mean()))
-            if k < args.registrations:
-                photo, _ = synthesize(model.mesh, truth, renderer=renderer, seed=k)
-                start = perturbed(truth, rng, 6.0)
-                result = register(photo, model, init_camera=start, renderer=renderer)
-                assert result.parts is not None
-                t_png = time.perf_counter()
-                png = result.parts.png()
-                spent = result.timings["parts"] + time.perf_counter() - t_png
-                found = result.parts.image()
-                acc = float((found[car] == true_map[car]).mean())
-                registered.append(acc)
-                seconds.append(spent)
-                runs.append({"model": model_id, "azimuth": az, "elevation": el, "pixel_accuracy": acc,
-                             "parts_seconds": spent, "png_bytes": len(png), "seconds": result.seconds})
-                print(f"{model_id:9s} az {az:5.1f} el {el:4.1f}  registered parts {100 * acc:5.1f} %  "
-                      f"map+png {spent:.3f} s  registration {result.seconds:.1f} s", flush=True)
-                truth_img = photo.copy()
-                truth_img[car] = (0.55 * photo[car] + 0.45 * colours[true_map[car]]).astype(np.uint8)
-                tiles.append((truth_img, draw_overlay(photo, model.mesh, result.camera, renderer=renderer,
-                                                      parts=result.parts)))
-        rows.append({"model": model_id, "views": args.views,
-                     "geometric panels %": 100 * float(np.mean(panel_agree)),
-                     "geometric panels min %": 100 * float(np.min(panel_agree)),
-                     "geometric all %": 100 * float(np.mean(all_agree)),
+            photo, _ = synthesize(model.mesh, truth, renderer=renderer, seed=k)
+            start = perturbed(truth, rng, 6.0)
+            result = register(photo, model, init_camera=start, renderer=renderer)
+            assert result.parts is not None
+            t_png = time.perf_counter()
+            png = result.parts.png()
+            spent = result.timings["parts"] + time.perf_counter() - t_png
+            found = result.parts.image()
+            acc = float((found[car] == true_map[car]).mean())
+            registered.append(acc)
+            seconds.append(spent)
+            runs.append({"model": model_id, "azimuth": az, "elevation": el, "pixel_accuracy": acc,
+                         "parts_seconds": spent, "png_bytes": len(png), "seconds": result.seconds})
+            print(f"{model_id:9s} az {az:5.1f} el {el:4.1f}  registered parts {100 * acc:5.1f} %  "
+                  f"map+png {spent:.3f} s  registration {result.seconds:.1f} s", flush=True)
+            truth_img = photo.copy()
+            truth_img[car] = (0.55 * photo[car] + 0.45 * colours[true_map[car]]).astype(np.uint8)
+            tiles.append((truth_img, draw_overlay(photo, model.mesh, result.camera, renderer=renderer,
+                                                  parts=result.parts)))
+        rows.append({"model": model_id, "registrations": len(registered),
                      "registered %": 100 * float(np.mean(registered)) if registered else float("nan"),
                      "registered min %": 100 * float(np.min(registered)) if registered else float("nan"),
                      "map+png median s": float(np.median(seconds)) if seconds else float("nan")})
-    every = {"model": "all", "views": sum(r["views"] for r in rows),
-             "geometric panels %": float(np.mean([r["geometric panels %"] for r in rows])),
-             "geometric panels min %": float(np.min([r["geometric panels min %"] for r in rows])),
-             "geometric all %": float(np.mean([r["geometric all %"] for r in rows])),
+    every = {"model": "all", "registrations": len(runs),
              "registered %": 100 * float(np.mean([r["pixel_accuracy"] for r in runs])) if runs else float("nan"),
              "registered min %": 100 * float(np.min([r["pixel_accuracy"] for r in runs])) if runs else float("nan"),
              "map+png median s": float(np.median([r["parts_seconds"] for r in runs])) if runs else float("nan")}

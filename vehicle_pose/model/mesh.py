@@ -153,10 +153,9 @@ class Mesh:
 
         from vehicle_pose.model.loading import shading_geometry
 
-        alike = self._alike_parts
-        budgets = _share_faces([len(p.faces) for p in alike], max_faces)
+        budgets = _share_faces([len(p.faces) for p in self.parts], max_faces)
         parts = []
-        for p, budget in zip(alike, budgets, strict=True):
+        for p, budget in zip(self.parts, budgets, strict=True):
             albedo = _mean_albedo(p)
             if budget >= len(p.faces) or len(p.faces) < 64:
                 parts.append(replace(p, uv=None, texture=None, albedo=np.full(len(p.vertices), albedo, np.float32)))
@@ -173,29 +172,6 @@ class Mesh:
                 Part(p.name, p.kind, verts, normals, faces, np.full(len(verts), albedo, np.float32))
             )
         return Mesh(tuple(parts), source=f"{self.source} (decimated to {max_faces})")
-
-    @cached_property
-    def _alike_parts(self) -> tuple[Part, ...]:
-        """The parts with parts that render alike joined (same kind, one gray albedo, no
-        texture): a body whose panels are named apart (a door, the hood, a fender) is simplified
-        as the one surface it is, not panel by panel with the seams torn open."""
-        groups: dict[object, list[Part]] = {}
-        for k, p in enumerate(self.parts):
-            plain = p.texture is None and len(p.albedo) > 0 and float(np.ptp(p.albedo)) == 0.0
-            key = (p.kind, float(p.albedo[0]), p.one_sided) if plain else k
-            groups.setdefault(key, []).append(p)
-        out = []
-        for members in groups.values():
-            if len(members) == 1:
-                out.append(members[0])
-                continue
-            offsets = np.cumsum([0] + [len(p.vertices) for p in members])[:-1]
-            faces = [p.faces.astype(np.uint32) + np.uint32(o) for p, o in zip(members, offsets, strict=True)]
-            out.append(Part(
-                "+".join(p.name for p in members), members[0].kind,
-                np.concatenate([p.vertices for p in members]), np.concatenate([p.normals for p in members]),
-                np.concatenate(faces), np.concatenate([p.albedo for p in members]), one_sided=members[0].one_sided))
-        return tuple(out)
 
     def _progressive(self, part: Part) -> Progressive:
         """The part's simplification (coincident vertices merged first), run once for every

@@ -1,11 +1,9 @@
-"""Procedurally built cars: body panels, windows, tyres, rims and lamps as separate named parts.
+"""Procedurally built cars: body, glass, tyres, rims and lights as separate material parts.
 
 The body is a loft of rounded cross-sections along the car's length, following a side profile
-and arching over the wheels; the greenhouse narrows towards the roof and its side faces are
-glass. Every face is named by the part it was built as (:func:`_construction_names`, the part
-vocabulary of :mod:`vehicle_pose.model.parts`: hood, doors, fenders, windows, ...), so the
-shipped models' part labels are exact. Axes: forward +x, left +y, up +z, metres, ground at
-z = 0. The wheel metadata of a generated car is exact.
+and arching over the wheels; the greenhouse narrows towards the roof and its side faces form the
+glass part. Axes: forward +x, left +y, up +z, metres, ground at z = 0. The wheel metadata of a
+generated car is exact.
 
 Run ``python -m vehicle_pose.model.procedural DIR`` to (re)write the shipped models into DIR.
 """
@@ -21,7 +19,6 @@ import numpy as np
 import numpy.typing as npt
 import trimesh
 
-from vehicle_pose.model.mesh import classify_part
 from vehicle_pose.model.metadata import WheelGeometry
 
 __all__ = ["CarSpec", "SEDAN", "HATCHBACK", "SUV", "VAN", "PICKUP", "SPECS", "build_car", "write_model"]
@@ -159,7 +156,7 @@ def _profile(spec: CarSpec, x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.
     return bottom, np.maximum(top, bottom + 0.1)
 
 
-def _body_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
+def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
     half = spec.length / 2
     xs = np.linspace(half, -half, spec.stations)
     bottom, top = _profile(spec, xs)
@@ -202,74 +199,18 @@ def _body_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
         & ~roofish
         & (tris[:, 0] < n * r)
     )
-    cap = tris[:, 0] >= n * r
-    names = _construction_names(spec, cent, seg[ring_j], glass, cap)
-    return [(name, _submesh(v, tris[names == name])) for name in dict.fromkeys(names)]
-
-
-def _plateau(spec: CarSpec) -> tuple[float, float]:
-    """The length range (rear, front) of the profile's roof: where it stands within 10 % of its
-    highest point."""
-    high = max(z for _, z in spec.top)
-    xs = [x for x, z in spec.top if z >= 0.9 * high]
-    return min(xs), max(xs)
-
-
-def _construction_names(spec: CarSpec, cent: npt.NDArray[np.float64], rise: npt.NDArray[np.float64],
-                        glass: npt.NDArray[np.bool_], cap: npt.NDArray[np.bool_]) -> npt.NDArray[np.str_]:
-    """The part each face of the loft was built as (the part vocabulary of
-    :mod:`vehicle_pose.model.parts`): from the spec's own measures, not from the finished surface.
-
-    ``rise`` is the sine of the face's place around the cross-section (1 on the top, -1
-    underneath), ``glass`` the greenhouse's side faces, ``cap`` the end caps.
-    """
-    x, y, z = cent[:, 0], cent[:, 1], cent[:, 2]
-    half = spec.length / 2
-    side = np.where(y >= 0, "left", "right")
-    rear_roof, front_roof = _plateau(spec)
-    xf, xr = spec.wheelbase / 2, -spec.wheelbase / 2
-    arch = spec.wheel_radius + 0.06 + 0.2  # the arch's cut-out and the panel's lip around it
-    split = 0.5 * ((xr + arch) + (xf - arch))
-    out = np.array([f"front_door_{s}" for s in side], dtype=object)
-    out[x < split] = [f"rear_door_{s}" for s in side[x < split]]
-    out[x >= xf - arch] = [f"front_fender_{s}" for s in side[x >= xf - arch]]
-    out[x <= xr + arch] = [f"rear_quarter_{s}" for s in side[x <= xr + arch]]
-    top = rise > 0.5
-    out[top & (x > spec.glass_x[1])] = "hood"
-    out[top & (x < spec.glass_x[0])] = "trunk"
-    out[top & (x >= spec.glass_x[0]) & (x <= spec.glass_x[1])] = "roof"
-    upper = (z > spec.belt + 0.04) & ~top & (x >= spec.glass_x[0]) & (x <= spec.glass_x[1])
-    out[upper] = [f"{'front' if xx >= split else 'rear'}_door_{s}" for xx, s in zip(x[upper], side[upper],
-                                                                                      strict=True)]
-    # the ends (where the loft's floor rises): bumpers up to the profile's first and last
-    # heights, and above them the end caps are the hood's nose and the trunk's (or
-    # tailgate's) back
-    front_top, rear_top = spec.top[0][1], spec.top[-1][1]
-    out[(x > half - 0.45) & ~top & (z < front_top)] = "front_bumper"
-    out[(x < -half + 0.45) & ~top & (z < rear_top)] = "rear_bumper"
-    out[cap & (x > 0)] = np.where(z[cap & (x > 0)] < front_top, "front_bumper", "hood")
-    out[cap & (x < 0)] = np.where(z[cap & (x < 0)] < rear_top, "rear_bumper", "trunk")
-    g = np.array([f"quarter_window_{s}" for s in side], dtype=object)
-    g[x >= split] = [f"front_door_window_{s}" for s in side[x >= split]]
-    middle = (x < split) & (x >= xr + arch)
-    g[middle] = [f"rear_door_window_{s}" for s in side[middle]]
-    g[x > front_roof] = "windscreen"
-    g[x < rear_roof] = "rear_window"
-    out[glass] = g[glass]
-    return np.asarray(out.astype(str))
-
-
-def _submesh(v: npt.NDArray[np.float64], tris: npt.NDArray[np.int64]) -> trimesh.Trimesh:
-    mesh = trimesh.Trimesh(v, tris, process=True)
-    mesh.remove_unreferenced_vertices()
-    return mesh
+    body = trimesh.Trimesh(v, tris[~glass], process=True)
+    glass_mesh = trimesh.Trimesh(v, tris[glass], process=True)
+    body.remove_unreferenced_vertices()
+    glass_mesh.remove_unreferenced_vertices()
+    return body, glass_mesh
 
 
 def _wheel_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
     parts = []
     rot = trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])
-    for axle, xa in (("rear", -spec.wheelbase / 2), ("front", spec.wheelbase / 2)):
-        for side, sgn in (("left", 1.0), ("right", -1.0)):
+    for axle, xa in (("r", -spec.wheelbase / 2), ("f", spec.wheelbase / 2)):
+        for side, sgn in (("l", 1.0), ("r", -1.0)):
             centre = np.array([xa, sgn * spec.track / 2, spec.wheel_radius])
             tyre = trimesh.creation.cylinder(radius=spec.wheel_radius, height=spec.tyre_width, sections=40)
             tyre.apply_transform(rot)
@@ -277,8 +218,7 @@ def _wheel_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
             rim = trimesh.creation.cylinder(radius=0.62 * spec.wheel_radius, height=0.03, sections=40)
             rim.apply_transform(rot)
             rim.apply_translation(centre + [0.0, sgn * (spec.tyre_width / 2 + 0.005), 0.0])
-            where = f"{axle}_{side}"
-            parts += [(f"tyre_{where}", tyre), (f"rim_{where}", rim)]
+            parts += [(f"tyre_{axle}{side}", tyre), (f"rim_{axle}{side}", rim)]
     return parts
 
 
@@ -286,24 +226,24 @@ def _light_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
     half = spec.length / 2
     bottom, top = _profile(spec, np.array([half - 0.08, -half + 0.08]))
     parts = []
-    for name, x, z in (("headlamp", half - 0.06, top[0] - 0.1), ("taillamp", -half + 0.05, top[1] - 0.12)):
-        for side, sgn in (("left", 1.0), ("right", -1.0)):
+    for name, x, z in (("headlight", half - 0.06, top[0] - 0.1), ("taillight", -half + 0.05, top[1] - 0.12)):
+        for side, sgn in (("l", 1.0), ("r", -1.0)):
             box = trimesh.creation.box(extents=(0.12, 0.34, 0.09))
             box.apply_translation([x, sgn * spec.width * 0.3, z])
             parts.append((f"{name}_{side}", box))
     return parts
 
 
-_ALBEDO = {"glass": 0.12, "tyre": 0.06, "rim": 0.6, "headlamp": 0.9, "taillamp": 0.3}
+_ALBEDO = {"glass": 0.12, "tyre": 0.06, "rim": 0.6, "headlight": 0.9, "taillight": 0.3}
 
 
 def build_car(spec: CarSpec = SEDAN) -> tuple[trimesh.Scene, WheelGeometry]:
     """The car as a trimesh scene of named, coloured parts, and its exact wheel geometry."""
-    named = [*_body_parts(spec), *_wheel_parts(spec), *_light_parts(spec)]
+    body, glass = _body_and_glass(spec)
+    named = [("body", body), ("glass", glass), *_wheel_parts(spec), *_light_parts(spec)]
     scene = trimesh.Scene()
     for name, mesh in named:
-        kind = classify_part(name)
-        gray = spec.body_albedo if kind == "body" else _ALBEDO["glass" if kind == "glass" else name.split("_")[0]]
+        gray = spec.body_albedo if name == "body" else _ALBEDO[name.split("_")[0]]
         g = int(round(255 * gray))
         mesh.visual = trimesh.visual.TextureVisuals(
             material=trimesh.visual.material.PBRMaterial(name=name, baseColorFactor=[g, g, g, 255])

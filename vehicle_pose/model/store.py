@@ -46,9 +46,8 @@ log = logging.getLogger(__name__)
 
 _T = TypeVar("_T")
 
-PREPARATION = 2
-"""Version of what an entry holds; raise it whenever preparation gives different arrays (2: the
-levels of detail simplify the parts that render alike as one surface)."""
+PREPARATION = 1
+"""Version of what an entry holds; raise it whenever preparation gives different arrays."""
 
 _LIBRARIES = ("numpy", "trimesh", "fast-simplification")
 
