@@ -45,7 +45,6 @@ def main() -> None:
     colours = np.array(palette(), np.uint8).reshape(256, 3)
     for model_id in lib.ids():
         model = lib.load(model_id)
-        built = model.part_labels()
         registered, seconds = [], []
         for k in range(args.registrations):
             az, el = float(rng.uniform(0, 360)), float(rng.uniform(0, 35))
@@ -53,7 +52,7 @@ def main() -> None:
             w, h = 640 * fill, 480 * fill
             box = (320 - w / 2, 240 - h / 2, 320 + w / 2, 240 + h / 2)
             truth = view_camera(model, az, el, 0.0, box, 640, 480, float(rng.uniform(600, 2400)))
-            true_map = part_map(model, truth, renderer, labels=built).image()
+            true_map = part_map(model, truth, renderer).image()
             car = true_map > 0
             photo, _ = synthesize(model.mesh, truth, renderer=renderer, seed=k)
             start = perturbed(truth, rng, 6.0)

@@ -13,11 +13,11 @@ part names nothing in the table are labelled by a geometric partition of the mod
 (:func:`geometric_labels`): its up axis, its forward direction and the wheel metadata's axles,
 track and radius. Fenders are the sides over the front wheels, the rear quarters the sides over
 the rear ones, the doors the sides between, the bumpers the ends beyond the wheel arches below
-the bonnet line, hood and trunk the surfaces facing up in front of and behind the cabin. Those
+the wheels' tops, hood and trunk the surfaces facing up in front of and behind the cabin. Those
 labels are estimates, and the model's :class:`PartLabels` say which parts were estimated.
 
-The procedural models of ``vehicle_models/`` name every part by construction
-(:mod:`vehicle_pose.model.procedural`), so their labels are exact.
+The procedural models of ``vehicle_models/`` name their tyres, rims and lamps; their one-piece
+body and glass are partitioned.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ import numpy.typing as npt
 from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.model.metadata import WheelGeometry, parse_axis
 
-__all__ = ["LABELLING", "VOCABULARY", "COLOURS", "SYNONYMS", "PartLabels", "label_faces", "geometric_labels",
-           "name_part", "model_frame", "part_index"]
+__all__ = ["LABELLING", "VOCABULARY", "LEGEND", "COLOURS", "SYNONYMS", "PartLabels", "face_geometry", "label_faces",
+           "geometric_labels", "name_part", "model_frame", "part_index"]
 
 LABELLING = 1
 """Version of the labelling; raise it whenever the labels of a mesh change (prepared models
@@ -49,6 +49,9 @@ VOCABULARY: tuple[str, ...] = (
     "other",
 )
 """The part ids; a label is an id's index + 1 (0 is no part: the background)."""
+
+LEGEND: dict[str, int] = {part: k + 1 for k, part in enumerate(VOCABULARY)}
+"""Every part id and its label (its value in a label image)."""
 
 # One colour per part, told apart at a glance: left and right share a hue, the right darker.
 _HUES: dict[str, tuple[int, int, int]] = {
@@ -75,7 +78,7 @@ COLOURS: dict[str, tuple[int, int, int]] = {p: _colour(p) for p in VOCABULARY}
 
 def part_index(part: str) -> int:
     """The label of a part id (its index in :data:`VOCABULARY` + 1)."""
-    return VOCABULARY.index(part) + 1
+    return LEGEND[part]
 
 
 # What a name says a part is, tried in order (the first kind whose words a name holds wins, so
@@ -137,6 +140,16 @@ class Frame:
     rear_axle: float
     radius: float
 
+    @property
+    def arch(self) -> float:
+        """How far the panels around a wheel reach from its axle (:data:`ARCH` wheel radii)."""
+        return ARCH * self.radius
+
+    @property
+    def door_split(self) -> float:
+        """Where the front doors end and the rear doors begin: midway between the arches."""
+        return 0.5 * ((self.rear_axle + self.arch) + (self.front_axle - self.arch))
+
     def local(self, points: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         return np.asarray((points - self.origin) @ self.axes.T)
 
@@ -174,20 +187,16 @@ class PartLabels:
         return cls(np.asarray(arrays["labels"], np.uint8), np.asarray(arrays["estimated"], np.bool_))
 
 
-def _faces(mesh: Mesh) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64],
-                                 npt.NDArray[np.int64]]:
-    """Every face's centroid, unit normal (sign arbitrary) and area (mesh frame), and the index
-    of the part it belongs to."""
-    cents, normals, areas, owner = [], [], [], []
-    for k, p in enumerate(mesh.parts):
-        tri = p.vertices[p.faces.astype(np.int64)]
-        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        norm = np.linalg.norm(cross, axis=1)
-        cents.append(tri.mean(1))
-        normals.append(cross / np.maximum(norm, 1e-30)[:, None])
-        areas.append(0.5 * norm)
-        owner.append(np.full(len(p.faces), k))
-    return np.concatenate(cents), np.concatenate(normals), np.concatenate(areas), np.concatenate(owner)
+def face_geometry(mesh: Mesh) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64],
+                                       npt.NDArray[np.int64]]:
+    """Every face's corners (F, 3, 3), unit normal (F, 3; sign arbitrary) and area (F,) in the
+    mesh frame, and the index of the part it belongs to (F,): the parts' faces in order, as
+    :class:`PartLabels` holds them."""
+    tris = np.concatenate([p.vertices[p.faces.astype(np.int64)] for p in mesh.parts])
+    cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    norm = np.linalg.norm(cross, axis=1)
+    owner = np.repeat(np.arange(len(mesh.parts)), [len(p.faces) for p in mesh.parts])
+    return tris, cross / np.maximum(norm, 1e-30)[:, None], 0.5 * norm, owner
 
 
 @dataclass(frozen=True)
@@ -199,8 +208,6 @@ class _Shape:
     top: float  # the roof's height
     belt: float  # the height of the windows' lower edge
     cabin: tuple[float, float]  # the forward range of the greenhouse (rear, front)
-    arch: float  # how far a wheel arch reaches from its axle
-    door_split: float  # where the front doors end and the rear doors begin
 
 
 def _shape(c: npt.NDArray[np.float64], areas: npt.NDArray[np.float64], glass: npt.NDArray[np.bool_],
@@ -215,9 +222,7 @@ def _shape(c: npt.NDArray[np.float64], areas: npt.NDArray[np.float64], glass: np
         belt = 0.66 * top
         high = z > belt + 0.5 * (top - belt)
         cabin = (float(x[high].min()), float(x[high].max())) if high.any() else (frame.rear_axle, frame.front_axle)
-    arch = ARCH * frame.radius
-    door_lo, door_hi = frame.rear_axle + arch, frame.front_axle - arch
-    return _Shape(front, rear, top, belt, cabin, arch, 0.5 * (door_lo + door_hi))
+    return _Shape(front, rear, top, belt, cabin)
 
 
 ARCH = 1.8
@@ -229,14 +234,13 @@ def _side(y: npt.NDArray[np.float64]) -> npt.NDArray[np.str_]:
     return np.where(y >= 0.0, "left", "right")
 
 
-def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shape, frame: Frame
-                ) -> npt.NDArray[np.object_]:
+def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], side: npt.NDArray[np.str_], s: _Shape,
+                frame: Frame) -> npt.NDArray[np.object_]:
     """Windscreen, rear window or the side window over each door (quarter windows behind)."""
     out = np.empty(len(c), object)
-    side = _side(c[:, 1])
     out[:] = [f"quarter_window_{sd}" for sd in side]
-    front_door = c[:, 0] >= s.door_split
-    rear_door = (c[:, 0] < s.door_split) & (c[:, 0] >= frame.rear_axle + s.arch)
+    front_door = c[:, 0] >= frame.door_split
+    rear_door = (c[:, 0] < frame.door_split) & (c[:, 0] >= frame.rear_axle + frame.arch)
     out[front_door] = [f"front_door_window_{sd}" for sd in side[front_door]]
     out[rear_door] = [f"rear_door_window_{sd}" for sd in side[rear_door]]
     facing = np.abs(n[:, 1]) < 0.6  # not a side window: the glass faces forward, back or up
@@ -247,19 +251,18 @@ def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shap
     return out
 
 
-def _body_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shape, frame: Frame
-               ) -> npt.NDArray[np.object_]:
+def _body_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], side: npt.NDArray[np.str_], s: _Shape,
+               frame: Frame) -> npt.NDArray[np.object_]:
     """The body panel of each face, from its place and the way it faces."""
     x, z = c[:, 0], c[:, 2]
-    side = _side(c[:, 1])
     out = np.empty(len(c), object)
     # the sides: fender over the front wheel, quarter over the rear one, doors between
     out[:] = [f"front_door_{sd}" for sd in side]
-    rear_door = x < s.door_split
+    rear_door = x < frame.door_split
     out[rear_door] = [f"rear_door_{sd}" for sd in side[rear_door]]
-    fender = x >= frame.front_axle - s.arch
+    fender = x >= frame.front_axle - frame.arch
     out[fender] = [f"front_fender_{sd}" for sd in side[fender]]
-    quarter = x <= frame.rear_axle + s.arch
+    quarter = x <= frame.rear_axle + frame.arch
     out[quarter] = [f"rear_quarter_{sd}" for sd in side[quarter]]
     # the surfaces facing up: hood before the cabin, trunk behind it, roof over it
     up = n[:, 2] > 0.55
@@ -271,7 +274,7 @@ def _body_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shape
     # the ends beyond the wheel arches: below the wheels' tops the bumpers, above them the
     # faces that look forward or back belong to the hood or the trunk (or tailgate)
     lid = 2.0 * frame.radius
-    ahead, behind = x > frame.front_axle + s.arch, x < frame.rear_axle - s.arch
+    ahead, behind = x > frame.front_axle + frame.arch, x < frame.rear_axle - frame.arch
     end = np.abs(n[:, 0]) > 0.7
     out[ahead & (z >= lid) & end & ~above] = "hood"
     out[behind & (z >= lid) & end & ~above] = "trunk"
@@ -298,8 +301,8 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
     when their names say nothing more.
     """
     frame = model_frame(up_axis, wheels)
-    cm, nm, areas, owner = _faces(mesh)
-    c, n = frame.local(cm), frame.turn(nm)
+    tris, nm, areas, owner = face_geometry(mesh)
+    c, n = frame.local(tris.mean(1)), frame.turn(nm)
     material = np.array([p.kind for p in mesh.parts], object)[owner]
     kinds = kinds if kinds is not None else np.full(len(c), None, object)
     unnamed = np.array([k is None for k in kinds], bool)
@@ -307,9 +310,9 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
                             "quarter_window"]) | ((material == "glass") & unnamed)
     s = _shape(c, areas, glass, frame)
     n = _outward(c, n, s)
-    out = _body_part(c, n, s, frame)
     side = _side(c[:, 1])
-    g = _glass_part(c, n, s, frame)
+    out = _body_part(c, n, side, s, frame)
+    g = _glass_part(c, n, side, s, frame)
     out[glass] = g[glass]
     lamp = (material == "light") & unnamed
     head = (kinds == "headlamp") | (lamp & (c[:, 0] >= 0))
@@ -322,7 +325,7 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
     mirror = kinds == "mirror"
     out[mirror] = [f"mirror_{sd}" for sd in side[mirror]]
     out[(kinds == "other") | ((material == "other") & unnamed)] = "other"
-    return np.array([part_index(p) for p in out], np.uint8)
+    return np.array([LEGEND[p] for p in out], np.uint8)
 
 
 def _placed(kind: str, c: npt.NDArray[np.float64], split: float) -> str:
@@ -358,7 +361,6 @@ def label_faces(mesh: Mesh, up_axis: str, wheels: WheelGeometry) -> PartLabels:
     labels = geometric.copy()
     estimated = np.repeat(np.array([k is None for k in named]), counts)
     start = 0
-    split = 0.5 * ((frame.rear_axle + ARCH * frame.radius) + (frame.front_axle - ARCH * frame.radius))
     for p, kind, count in zip(mesh.parts, named, counts, strict=True):
         if kind is not None and kind not in ("side_window", "wheel", "mirror", "headlamp", "taillamp"):
             tri = p.vertices[p.faces.astype(np.int64)].mean(1)
@@ -369,6 +371,6 @@ def label_faces(mesh: Mesh, up_axis: str, wheels: WheelGeometry) -> PartLabels:
                     spread.min() < -0.25 * wheels.track_width and spread.max() > 0.25 * wheels.track_width:
                 start += count  # both sides in one geometry: the geometric partition places it
                 continue
-            labels[start:start + count] = part_index(_placed(kind, local.mean(0), split))
+            labels[start:start + count] = part_index(_placed(kind, local.mean(0), frame.door_split))
         start += count
     return PartLabels(labels, estimated)

@@ -25,7 +25,7 @@ from vehicle_pose.errors import RenderError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.model.mesh import Mesh
-from vehicle_pose.model.parts import COLOURS, VOCABULARY, PartLabels
+from vehicle_pose.model.parts import COLOURS, LEGEND, VOCABULARY, face_geometry
 from vehicle_pose.render.exterior import FACE_ID_FRAGMENT_SHADER, FACE_ID_VERTEX_SHADER
 from vehicle_pose.render.renderer import Renderer, clip_planes, projection_matrix, uniform
 
@@ -77,10 +77,6 @@ class PartMap:
             return self.labels
         return np.asarray(cv2.resize(self.labels, (self.width, self.height), interpolation=cv2.INTER_NEAREST))
 
-    def legend(self) -> dict[str, int]:
-        """Every part id and its label (index in the label image)."""
-        return {part: k + 1 for k, part in enumerate(VOCABULARY)}
-
     def png(self) -> bytes:
         """The label image as an indexed PNG: each pixel its part's label, the palette the
         parts' colours, the legend (part id to label) as JSON in a ``legend`` text chunk."""
@@ -89,7 +85,7 @@ class PartMap:
         img = Image.fromarray(self.image(), mode="P")
         img.putpalette(palette())
         info = PngImagePlugin.PngInfo()
-        info.add_text("legend", json.dumps(self.legend()))
+        info.add_text("legend", json.dumps(LEGEND))
         buf = io.BytesIO()
         img.save(buf, format="PNG", pnginfo=info, optimize=False)
         return buf.getvalue()
@@ -107,11 +103,8 @@ def _soup(mesh: Mesh) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64],
     and area (F,), in the order of :class:`~vehicle_pose.model.parts.PartLabels`."""
     found = _SOUPS.get(mesh)
     if found is None:
-        tris = np.concatenate([p.vertices[p.faces.astype(np.int64)] for p in mesh.parts])
-        cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-        norm = np.linalg.norm(cross, axis=1)
-        found = (np.ascontiguousarray(tris.reshape(-1, 3), np.float32), cross / np.maximum(norm, 1e-30)[:, None],
-                 0.5 * norm)
+        tris, normals, areas, _ = face_geometry(mesh)
+        found = (np.ascontiguousarray(tris.reshape(-1, 3), np.float32), normals, areas)
         _SOUPS[mesh] = found
     return found
 
@@ -168,14 +161,13 @@ def _polygons(mask: npt.NDArray[np.bool_], sx: float, sy: float) -> list[list[li
     return out
 
 
-def part_map(model: VehicleModel, camera: Camera, renderer: Renderer, *, max_size: int = MAX_SIZE,
-             labels: PartLabels | None = None) -> PartMap:
+def part_map(model: VehicleModel, camera: Camera, renderer: Renderer, *, max_size: int = MAX_SIZE) -> PartMap:
     """The part map of ``model`` seen by ``camera`` (a camera of the photo's own size)."""
     W, H = camera.width, camera.height
     s = min(1.0, max_size / max(W, H))
     w, h = max(1, round(W * s)), max(1, round(H * s))
     cam = camera if (w, h) == (W, H) else camera.scaled(w, h)
-    labels = labels if labels is not None else model.part_labels()
+    labels = model.part_labels()
     ids = _face_ids(renderer, model.mesh, cam)
     _, normals, areas = _soup(model.mesh)
     seen = ids > 0

@@ -23,7 +23,7 @@ from vehicle_pose.loss.alternatives import SilhouetteIoULoss
 from vehicle_pose.loss.invariant import InvariantLoss, make_target
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.model.metadata import parse_axis
+from vehicle_pose.model.parts import model_frame
 from vehicle_pose.registration.options import WINDOW_MARGIN
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.segment.region import VehicleRegion
@@ -164,10 +164,8 @@ def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, sh
 def upright_axes(model: VehicleModel) -> tuple[FloatArray, FloatArray]:
     """The model's up axis and its forward direction (rear axle to front, in the ground plane),
     unit vectors in mesh coordinates: what azimuth and elevation are measured from."""
-    up = parse_axis(model.info.up)
-    fwd = model.wheels.front_axle_center - model.wheels.rear_axle_center
-    fwd = fwd - (fwd @ up) * up
-    return up, fwd / np.linalg.norm(fwd)
+    axes = model_frame(model.info.up, model.wheels).axes
+    return axes[2], axes[0]
 
 
 def view_camera(
