@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import sync_playwright
 
+from vehicle_pose.model.parts import COLOURS
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 from helpers import perturbed, view
@@ -82,8 +83,12 @@ def test_admin_page_lists_and_opens_a_finished_job(service, browser, sedan, rend
     table.wait_for()
     rows = table.locator("tbody tr")
     assert rows.count() >= 5
-    swatch = rows.first.locator(".swatch")
-    assert page.evaluate("e => getComputedStyle(e).backgroundColor", swatch.element_handle()) != "rgba(0, 0, 0, 0)"
+    # the swatch is an SVG fill: the admin page's CSP allows no inline style
+    first = json.loads(page.locator("#pose").inner_text())["parts"][0]
+    swatch = rows.first.locator(".swatch rect")
+    assert rows.first.locator("td").nth(1).inner_text() == first["part"].replace("_", " ")
+    assert page.evaluate("e => getComputedStyle(e).fill", swatch.element_handle()) == "rgb({}, {}, {})".format(
+        *COLOURS[first["part"]])
     pose = json.loads(page.locator("#pose").inner_text())
     assert len(pose["cam_K"]) == 9 and pose["model"]["id"] == "sedan"
     page.screenshot(path=str(tmp_path / "admin-detail.png"), full_page=True)

@@ -93,7 +93,7 @@ def _legend(out: npt.NDArray[np.uint8], parts: PartMap, most: int = 14) -> None:
     shown = parts.parts[:most]
     if not shown:
         return
-    scale = max(0.35, min(W, H) / 900)
+    scale = max(0.7, min(W, H) / 700)  # legible on a 640-pixel overlay, in proportion above
     line = int(round(22 * scale))
     box = int(round(14 * scale))
     width = int(round(230 * scale))
