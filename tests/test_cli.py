@@ -81,12 +81,34 @@ def test_cli_options_reach_the_engine(tmp_path):
     out = tmp_path / "result.json"
     proc = _cli("register", "examples/sedan.jpg", "--model", "sedan", "--init-camera", "examples/sedan_init.json",
                 "--bbox", "100,150,700,450", "--edge-weight", "0", "--box-weight", "0.5", "--no-box-refit",
-                "--single-level", "--max-evaluations", "40", "--out", str(out))
+                "--single-level", "--max-evaluations", "40", "--no-exif-focal", "--out", str(out))
     assert proc.returncode == 0, proc.stderr
     result = json.loads(out.read_text())
     opts = result["options"]
     assert (opts["edge_weight"], opts["box_weight"], opts["fit_start_to_box"]) == (0.0, 0.5, False)
+    assert opts["exif_focal"] is False
     assert len(result["levels"]) == 1 and result["levels"][0]["objective"] >= result["levels"][0]["loss"]
+
+
+def test_cli_reads_the_exif_focal_length_and_warns_of_one_that_cannot_be(tmp_path):
+    from PIL import ExifTags
+
+    with Image.open(ROOT / "examples" / "sedan.jpg") as img:
+        pixels = img.copy()
+    for equivalent, warned in ((1000, True), (40, False)):
+        exif = Image.Exif()
+        exif.get_ifd(ExifTags.IFD.Exif)[0xA405] = equivalent
+        photo, out = tmp_path / f"lens{equivalent}.jpg", tmp_path / f"r{equivalent}.json"
+        pixels.save(photo, "JPEG", quality=95, exif=exif)
+        proc = _cli("register", str(photo), "--model", "sedan", "--init-camera", "examples/sedan_init.json",
+                    "--single-level", "--max-evaluations", "40", "--out", str(out))
+        assert proc.returncode == 0, proc.stderr
+        result = json.loads(out.read_text())
+        assert result["focal"]["source"] == "searched"  # the start camera's focal length wins
+        assert result["focal"]["exif"]["equivalent_mm"] == equivalent
+        assert bool(result["warnings"]) == warned and ("warning: the EXIF focal length" in proc.stderr) == warned
+        if not warned:
+            assert result["focal"]["exif"]["pixels"] == pytest.approx(40 / 43.2666 * 1000, rel=1e-3)
 
 
 @pytest.mark.parametrize(

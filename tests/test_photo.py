@@ -1,4 +1,5 @@
-"""Reading photos: every mode, EXIF orientation, bad bytes, verification without decoding, bombs."""
+"""Reading photos: every mode, EXIF orientation, bad bytes, verification without decoding, bombs, the
+EXIF focal length."""
 
 from __future__ import annotations
 
@@ -6,10 +7,10 @@ import io
 
 import numpy as np
 import pytest
-from PIL import Image
+from PIL import ExifTags, Image
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
-from vehicle_pose.photo import decode_photo, verify_photo
+from vehicle_pose.photo import FULL_FRAME_DIAGONAL, decode_photo, read_focal, verify_photo
 
 
 def _encode(img: Image.Image, fmt: str, **kw) -> bytes:
@@ -90,3 +91,64 @@ def test_a_large_jpeg_can_be_decoded_reduced_to_at_least_the_size_asked():
     png = io.BytesIO()
     img.save(png, format="PNG")
     assert decode_photo(png.getvalue(), reduce_to=800).shape == (2400, 3200, 3)  # only JPEG reduces while decoding
+
+
+def _with_lens(size: tuple[int, int], tags: dict[int, object], orientation: int = 1, fmt: str = "JPEG") -> bytes:
+    """A photo of ``size`` (as stored) whose Exif IFD holds ``tags``, written by Pillow."""
+    img = Image.new("RGB", size, (90, 100, 110))
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    exif.get_ifd(ExifTags.IFD.Exif).update(tags)
+    return _encode(img, fmt, exif=exif)
+
+
+def test_the_35mm_equivalent_is_converted_across_the_diagonal():
+    lens = read_focal(_with_lens((800, 600), {0xA405: 26}))
+    assert lens.form == "35mm" and lens.warning is None and lens.equivalent_mm == 26
+    assert lens.pixels(800) == pytest.approx(26 / FULL_FRAME_DIAGONAL * 1000.0)
+    # A reduced copy of the photo has the focal length reduced with it.
+    assert lens.pixels(400) == pytest.approx(0.5 * lens.pixels(800))
+
+
+@pytest.mark.parametrize("fmt", ["JPEG", "PNG", "WEBP"])
+def test_the_focal_plane_form_gives_the_focal_length_in_pixels(fmt):
+    # 4.2 mm on a sensor of 1000 pixels per 5.6 mm, written for the 1000-pixel image it is.
+    tags = {0x920A: 4.2, 0xA20E: 1000 / 5.6 * 25.4, 0xA210: 2, 0xA002: 1000, 0xA003: 750}
+    lens = read_focal(_with_lens((1000, 750), tags, fmt=fmt))
+    assert lens.form == "focal_plane" and lens.focal_mm == pytest.approx(4.2)
+    assert lens.pixels(1000) == pytest.approx(4.2 / 5.6 * 1000, rel=1e-3)
+    # In millimetres per unit, and for a photo resized since: the same field of view.
+    tags = {0x920A: 4.2, 0xA20E: 1000 / 5.6, 0xA210: 4, 0xA002: 2000, 0xA003: 1500}
+    assert read_focal(_with_lens((1000, 750), tags)).pixels(1000) == pytest.approx(0.5 * 4.2 / 5.6 * 1000, rel=1e-3)
+
+
+def test_the_focal_length_is_in_widths_of_the_photo_as_seen():
+    # Stored 800x600 and turned a quarter by its orientation: seen 600 wide, same pixels.
+    lens = read_focal(_with_lens((800, 600), {0xA405: 26}, orientation=6))
+    assert lens.pixels(600) == pytest.approx(26 / FULL_FRAME_DIAGONAL * 1000.0)
+    assert decode_photo(_with_lens((800, 600), {0xA405: 26}, orientation=6)).shape[1] == 600
+
+
+@pytest.mark.parametrize("tags", [{0xA405: 0}, {0xA405: 1000}, {0x920A: 4.2, 0xA20E: 1000 / 0.056 * 25.4},
+                                  {0x920A: 0.0, 0xA20E: 300.0}])
+def test_absurd_exif_is_none_with_a_warning(tags):
+    lens = read_focal(_with_lens((800, 600), tags))
+    assert lens.widths is None and lens.pixels(800) is None
+    assert "cannot be the lens's" in lens.warning
+
+
+def test_a_photo_cropped_since_it_was_taken_has_no_focal_length():
+    lens = read_focal(_with_lens((800, 800), {0xA405: 26, 0xA002: 4032, 0xA003: 3024}))
+    assert lens.widths is None and "cropped" in lens.warning
+
+
+def test_a_photo_without_a_usable_focal_length_has_none_and_no_warning():
+    assert read_focal(_encode(Image.new("RGB", (64, 48)), "JPEG")).widths is None
+    # A focal length without the sensor's size says nothing of the field of view.
+    lens = read_focal(_with_lens((800, 600), {0x920A: 4.2}))
+    assert lens.widths is None and lens.warning is None and lens.focal_mm == pytest.approx(4.2)
+
+
+def test_the_focal_length_of_bad_bytes_is_a_photo_error():
+    with pytest.raises(PhotoError):
+        read_focal(b"not an image")

@@ -30,6 +30,9 @@ _WHERE = {
     "load_mesh": "model.loading",
     "decode_photo": "photo",
     "load_photo": "photo",
+    "load_photo_focal": "photo",
+    "read_focal": "photo",
+    "ExifFocal": "photo",
     "RegistrationOptions": "registration.options",
     "Pyramid": "registration.options",
     "Segmentation": "registration.options",
@@ -65,7 +68,7 @@ if TYPE_CHECKING:
     from vehicle_pose.model.loading import load_mesh
     from vehicle_pose.model.mesh import Mesh
     from vehicle_pose.model.store import ModelStore
-    from vehicle_pose.photo import decode_photo, load_photo
+    from vehicle_pose.photo import ExifFocal, decode_photo, load_photo, load_photo_focal, read_focal
     from vehicle_pose.registration.options import (
         Budgets,
         Probes,
@@ -129,6 +132,9 @@ __all__ = [
     "invariant_loss",
     "load_mesh",
     "load_photo",
+    "load_photo_focal",
+    "read_focal",
+    "ExifFocal",
     "model_from_mesh",
     "register",
     "theta_to_camera",

@@ -166,15 +166,15 @@ def _prepare_command(args: argparse.Namespace) -> int:
 
 def _register(args: argparse.Namespace) -> int:
     from vehicle_pose.geometry.camera import Camera
-    from vehicle_pose.photo import load_photo
+    from vehicle_pose.photo import load_photo_focal
     from vehicle_pose.registration.identify import register_or_identify
     from vehicle_pose.render.overlay import draw_overlay, save_png
 
-    photo = load_photo(args.photo)
+    photo, exif = load_photo_focal(args.photo)
     models = _load_models(args, [args.model])
     init = Camera.load(args.init_camera) if args.init_camera else None
     options = options_from_args(args)
-    result, data = register_or_identify(photo, models, init_camera=init, bbox=args.bbox, options=options)
+    result, data = register_or_identify(photo, models, init_camera=init, bbox=args.bbox, options=options, exif=exif)
     model = result.model
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -187,6 +187,8 @@ def _register(args: argparse.Namespace) -> int:
         where = Path(args.parts)
         where.parent.mkdir(parents=True, exist_ok=True)
         where.write_bytes(result.parts.png())
+    for warning in result.warnings:
+        print(f"vehicle-pose: warning: {warning}", file=sys.stderr)
     conf = "" if result.confidence is None else f", confidence {result.confidence:.2f}"
     print(
         f"registered {model.info.id}: loss {result.loss:.4f}{conf}, {result.evaluations} evaluations, "

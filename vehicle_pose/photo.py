@@ -1,4 +1,5 @@
-"""Reading photos into RGB arrays: EXIF orientation applied, any mode converted, bombs refused."""
+"""Reading photos into RGB arrays (EXIF orientation applied, any mode converted, bombs refused),
+and the lens's focal length from their EXIF."""
 
 from __future__ import annotations
 
@@ -6,15 +7,17 @@ import io
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
-from PIL import Image, ImageOps, UnidentifiedImageError
+from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 
-__all__ = ["load_photo", "decode_photo", "verify_photo", "is_gray", "resized", "resized_mask", "MAX_PIXELS"]
+__all__ = ["load_photo", "load_photo_focal", "decode_photo", "verify_photo", "read_focal", "ExifFocal", "is_gray",
+           "resized", "resized_mask", "MAX_PIXELS", "EQUIVALENT_RANGE", "FULL_FRAME_DIAGONAL"]
 
 MAX_PIXELS = 50_000_000
 
@@ -91,14 +94,124 @@ def verify_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> tuple[int, int
     return width, height
 
 
-def load_photo(path: str | Path, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
-    """Read a photo file into an (H, W, 3) uint8 RGB array; PhotoError if it cannot be used."""
+def _file(path: str | Path) -> bytes:
     p = Path(path)
     try:
-        data = p.read_bytes()
+        return p.read_bytes()
     except OSError as exc:
         raise PhotoError(f"cannot read photo {p}: {exc.strerror}") from None
-    return decode_photo(data, max_pixels=max_pixels)
+
+
+def load_photo(path: str | Path, *, max_pixels: int = MAX_PIXELS) -> npt.NDArray[np.uint8]:
+    """Read a photo file into an (H, W, 3) uint8 RGB array; PhotoError if it cannot be used."""
+    return decode_photo(_file(path), max_pixels=max_pixels)
+
+
+def load_photo_focal(path: str | Path, *, max_pixels: int = MAX_PIXELS) -> tuple[npt.NDArray[np.uint8], ExifFocal]:
+    """:func:`load_photo` and :func:`read_focal` of one file, read once."""
+    data = _file(path)
+    return decode_photo(data, max_pixels=max_pixels), read_focal(data, max_pixels=max_pixels)
+
+
+FULL_FRAME_DIAGONAL = float(np.hypot(36.0, 24.0))
+"""Diagonal (mm) of the 36 x 24 mm frame that 35 mm equivalent focal lengths refer to."""
+
+EQUIVALENT_RANGE = (10.0, 600.0)
+"""35 mm equivalent focal lengths (mm) a photo's lens may have: horizontal fields of view of a
+3:2 frame from 122 to 3.4 degrees (phones' widest lenses are 13 mm, their longest 240 mm).
+EXIF outside it (0, 1000 mm, a sensor size off by a factor of ten) is taken for an error."""
+
+# EXIF tags (Exif IFD) of the lens and of the image size the camera wrote.
+_FOCAL_LENGTH, _FOCAL_35MM = 0x920A, 0xA405
+_PLANE_X, _PLANE_UNIT = 0xA20E, 0xA210
+_PIXEL_X, _PIXEL_Y = 0xA002, 0xA003
+_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # FocalPlaneResolutionUnit: inch, cm, mm, um
+
+
+@dataclass(frozen=True)
+class ExifFocal:
+    """The focal length a photo's EXIF gives, as a registration can use it.
+
+    ``widths`` is the focal length over the photo's width (the width as the photo is seen, after
+    its EXIF orientation), so that it holds at any reduction: :meth:`pixels`. It is None when
+    the EXIF gives none, or one that cannot be right (then ``warning`` says why). ``form`` is
+    the EXIF form it was read from: ``35mm`` (FocalLengthIn35mmFilm) or ``focal_plane``
+    (FocalLength and FocalPlaneXResolution); ``equivalent_mm`` its 35 mm equivalent and
+    ``focal_mm`` the FocalLength as written.
+    """
+
+    widths: float | None = None
+    form: str | None = None
+    equivalent_mm: float | None = None
+    focal_mm: float | None = None
+    warning: str | None = None
+
+    def pixels(self, width: float) -> float | None:
+        """The focal length in pixels of the photo at ``width`` pixels wide."""
+        return None if self.widths is None else self.widths * width
+
+    def to_dict(self) -> dict[str, float | str | None]:
+        return {"widths": self.widths, "form": self.form, "equivalent_mm": self.equivalent_mm,
+                "focal_mm": self.focal_mm, "warning": self.warning}
+
+
+def _number(value: object) -> float | None:
+    """An EXIF rational or integer as a float; None when absent, zero-divided or not a number."""
+    if value is None:
+        return None
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return out if np.isfinite(out) else None
+
+
+def read_focal(data: bytes, *, max_pixels: int = MAX_PIXELS) -> ExifFocal:
+    """The focal length in the EXIF of the photo ``data`` (only its header is read).
+
+    The 35 mm equivalent (FocalLengthIn35mmFilm) is converted across the diagonal (a lens of
+    ``e`` mm equivalent has a focal length of ``e`` / 43.27 diagonals); else the focal length
+    and the sensor's pixels per unit (FocalLength, FocalPlaneXResolution and its unit) give it
+    in pixels of the image the camera wrote (PixelXDimension wide where written), scaled to the
+    photo. A 35 mm equivalent outside :data:`EQUIVALENT_RANGE`, or a photo whose shape is no
+    longer the one the camera wrote (cropped since), gives none, with a warning. Raises what
+    :func:`decode_photo` raises for data that is not a photo.
+    """
+    with _opened(data, max_pixels) as img:
+        width, height = img.width, img.height
+        exif = img.getexif()
+    turned = exif.get(0x0112, 1) in (5, 6, 7, 8)
+    tags = exif.get_ifd(ExifTags.IFD.Exif)
+    focal_mm = _number(tags.get(_FOCAL_LENGTH))
+    written = _number(tags.get(_FOCAL_35MM))
+    plane = _number(tags.get(_PLANE_X))
+    if written is None and (focal_mm is None or plane is None):
+        return ExifFocal(focal_mm=focal_mm)
+    # The image size the camera wrote, in its stored orientation (as the photo's own).
+    shot_w, shot_h = _number(tags.get(_PIXEL_X)), _number(tags.get(_PIXEL_Y))
+    shape = width / height
+    if shot_w and shot_h and shot_w > 0 and shot_h > 0 and abs(shot_w / shot_h - shape) > 0.01 * shape:
+        return ExifFocal(focal_mm=focal_mm, warning=(
+            f"the EXIF focal length is for a {shot_w:.0f}x{shot_h:.0f} picture and the photo is "
+            f"{width}x{height} (cropped since it was taken): the focal length is searched"))
+    diagonal = float(np.hypot(width, height))
+    seen_width = height if turned else width
+    found: list[tuple[str, float, float]] = []  # form, focal in pixels of the stored image, 35 mm equivalent
+    if written is not None:
+        found.append(("35mm", written / FULL_FRAME_DIAGONAL * diagonal, written))
+    if focal_mm is not None and plane is not None:
+        unit = _UNIT_MM.get(int(_number(tags.get(_PLANE_UNIT)) or 2))
+        if unit is not None:
+            pixels = focal_mm * plane / unit * (width / shot_w if shot_w and shot_w > 0 else 1.0)
+            found.append(("focal_plane", pixels, pixels / diagonal * FULL_FRAME_DIAGONAL))
+    lo, hi = EQUIVALENT_RANGE
+    for form, pixels, equivalent in found:
+        if lo <= equivalent <= hi:
+            return ExifFocal(pixels / seen_width, form, equivalent, focal_mm)
+    form, _, equivalent = found[0]
+    return ExifFocal(focal_mm=focal_mm, equivalent_mm=equivalent, form=form, warning=(
+        f"the EXIF focal length ({equivalent:.4g} mm, 35 mm equivalent, from its {form} form) is outside "
+        f"{lo:.0f}-{hi:.0f} mm and cannot be the lens's: the focal length is searched"))
 
 
 def is_gray(rgb: npt.NDArray[np.uint8]) -> bool:

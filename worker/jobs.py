@@ -36,7 +36,7 @@ from vehicle_pose import (
     decode_photo,
 )
 from vehicle_pose.errors import RenderError
-from vehicle_pose.photo import resized
+from vehicle_pose.photo import read_focal, resized
 from vehicle_pose.registration.identify import register_or_identify
 from vehicle_pose.render.overlay import draw_overlay, encode_image
 
@@ -196,13 +196,16 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     options = RegistrationOptions.from_flat(job.options)
     # A large JPEG is decoded reduced, to twice the working size at least; the registration
     # still answers in the photo's own pixels.
-    photo = decode_photo(storage.get(job.photo_key), max_pixels=settings.max_photo_pixels,
-                         reduce_to=2 * options.pyramid.max_size)
+    raw = storage.get(job.photo_key)
+    photo = decode_photo(raw, max_pixels=settings.max_photo_pixels, reduce_to=2 * options.pyramid.max_size)
+    exif = read_focal(raw, max_pixels=settings.max_photo_pixels)
+    del raw
     models = [library.load(model_id) for model_id in library.resolve(job.model_id)]
     init = Camera.from_dict(job.init_camera) if job.init_camera else None
     progress = _Progress(job.id, settings.progress_interval_s)
     result, data = register_or_identify(photo, models, init_camera=init, bbox=job.bbox, options=options,
-                                        progress=progress, photo_size=(job.photo_width, job.photo_height))
+                                        progress=progress, photo_size=(job.photo_width, job.photo_height),
+                                        exif=exif)
     model = result.model
     base = overlay_base(photo)
     del photo  # a large photo's array need not outlive the registration

@@ -80,3 +80,28 @@ def test_dolly_zooms_keep_centre_size_and_orientation(sedan):
         # The apparent size at the centre's depth is kept: f / depth is unchanged.
         depth, depth0 = zoomed.to_camera(centre[None])[0, 2], cam.to_camera(centre[None])[0, 2]
         assert zoomed.focal / depth == pytest.approx(cam.focal / depth0)
+
+
+@pytest.mark.parametrize("g", [-1.0, -0.05, 0.0, 0.04, 0.7])
+def test_a_focal_band_holds_the_focal_length_and_moves_the_depth_with_it(sedan, g):
+    ref = view(sedan, 30.0, 15.0)
+    centre, radius = sedan.mesh.sphere
+    band = (ref.focal / ref.width / 1.1, ref.focal / ref.width * 1.1)
+    banded = ViewParams(ref, centre, 0.5 * radius, band)
+    free = ViewParams(ref, centre, 0.5 * radius)
+    x = np.array([0.01, -0.02, 0.0, 0.01, 0.0, 0.02, g])
+    cam = banded.camera(x)
+    assert band[0] * ref.width - 1e-9 <= cam.focal <= band[1] * ref.width + 1e-9
+    # Beyond the band the camera is the band's edge: a dolly zoom there, not a change of size.
+    clipped = np.clip(g, -np.log(1.1), np.log(1.1))
+    np.testing.assert_allclose(cam.t, free.camera(np.r_[x[:6], clipped]).t, atol=1e-9)
+
+
+def test_a_focal_band_holds_the_theta_focal_length(sedan):
+    ref = view(sedan, 30.0, 15.0)
+    band = (1.0, 1.2)
+    params = ThetaParams(ref, sedan.wheels.side("left"), "left", band)
+    for f_widths in (0.3, 1.1, 5.0):
+        x = params.start()
+        x[6] = 10.0 / f_widths
+        assert band[0] * ref.width - 1e-6 <= params.camera(x).focal <= band[1] * ref.width + 1e-6

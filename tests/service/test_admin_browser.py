@@ -7,6 +7,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from PIL import ExifTags, Image
 from playwright.sync_api import sync_playwright
 
 from vehicle_pose.model.parts import COLOURS
@@ -39,11 +40,14 @@ def browser():
 def test_admin_page_lists_and_opens_a_finished_job(service, browser, sedan, renderer, tmp_path):
     truth = view(sedan, 140.0, 20.0, focal=900.0)
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=21)
+    exif = Image.Exif()
+    exif[0x0112] = 1  # Pillow writes a PNG's EXIF only when its first IFD holds a tag
+    exif.get_ifd(ExifTags.IFD.Exif)[0xA405] = 49  # 900 pixels of an 800-pixel diagonal, 35 mm equivalent
     with service.client() as c:
         r = c.post(
             "/v1/registrations",
             data={"model_id": "sedan", "init_camera": json.dumps(perturbed(truth, 21).to_dict())},
-            files={"photo": ("car.png", encode(photo), "image/png")},
+            files={"photo": ("car.png", encode(photo, exif=exif), "image/png")},
         )
         job_id = r.json()["id"]
         assert wait_for(c, job_id)["status"] == "succeeded"
@@ -91,6 +95,9 @@ def test_admin_page_lists_and_opens_a_finished_job(service, browser, sedan, rend
         *COLOURS[first["part"]])
     pose = json.loads(page.locator("#pose").inner_text())
     assert len(pose["cam_K"]) == 9 and pose["model"]["id"] == "sedan"
+    # The client's start camera wins over the photo's EXIF focal length, which the page shows.
+    assert pose["focal"]["source"] == "searched"
+    assert "searched" in page.locator("#focal").inner_text() and "49 mm" in page.locator("#focal").inner_text()
     page.screenshot(path=str(tmp_path / "admin-detail.png"), full_page=True)
     context.close()
     for name in ("admin-list.png", "admin-detail.png"):

@@ -185,9 +185,10 @@ def test_run_job_stores_result_overlay_and_thumbnail(service_db, small_photo, se
 @pytest.mark.parametrize("fmt", ["PNG", "JPEG"])
 def test_the_overlay_of_a_large_photo_is_drawn_reduced_and_the_pose_is_the_photos(service_db, sedan, renderer, fmt):
     """A JPEG is also decoded reduced (to half its size here, twice the working size at least);
-    either way the pose answers in the photo's own pixels."""
+    either way the pose answers in the photo's own pixels, and so does the EXIF focal length."""
     import cv2
     import numpy as np
+    from PIL import ExifTags, Image
 
     from vehicle_pose.geometry.camera import Camera
     from worker.jobs import OVERLAY_MAX_SIZE, run_job
@@ -197,7 +198,9 @@ def test_the_overlay_of_a_large_photo_is_drawn_reduced_and_the_pose_is_the_photo
     client_id, store = service_db
     truth = view(sedan, 60.0, 15.0, width=2880, height=2160, focal=4050.0)
     big, _ = synthesize(sedan.mesh, truth, renderer=renderer)
-    data = encode(big, fmt, quality=92) if fmt == "JPEG" else encode(big)
+    exif = Image.Exif()
+    exif.get_ifd(ExifTags.IFD.Exif)[0xA405] = 49  # 4050 pixels of a 3600-pixel diagonal, 35 mm equivalent
+    data = encode(big, fmt, quality=92, exif=exif) if fmt == "JPEG" else encode(big)
     job_id = _job(client_id, store, data, init_camera=perturbed(truth, 3, degrees=4.0).to_dict())
     assert run_job(job_id) == "succeeded"
     job = _record(job_id)
@@ -206,4 +209,10 @@ def test_the_overlay_of_a_large_photo_is_drawn_reduced_and_the_pose_is_the_photo
     assert projection_error(sedan, found.scaled(640, 480), truth.scaled(640, 480)) < 1.5
     overlay = cv2.imdecode(np.frombuffer(store.get(job.overlay_key), np.uint8), cv2.IMREAD_COLOR)
     assert overlay.shape[:2] == (round(2160 * OVERLAY_MAX_SIZE / 2880), OVERLAY_MAX_SIZE)
+    # The client's start camera wins over the EXIF, which the result still reports.
+    assert job.result["focal"]["source"] == "searched"
+    if fmt == "JPEG":
+        assert job.result["focal"]["exif"]["pixels"] == pytest.approx(4050.0, rel=0.01)
+    else:
+        assert job.result["focal"]["exif"] is None
 

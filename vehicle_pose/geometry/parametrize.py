@@ -49,7 +49,8 @@ class SearchFrame:
 
     ``centre`` (3,) and ``radius`` are its bounding sphere (mesh units), ``geometry`` the wheel
     geometry of the visible ``side``, ``pivot`` where a dolly zoom keeps the image size, in
-    bounding-sphere radii in front of the centre (:class:`ViewParams`).
+    bounding-sphere radii in front of the centre (:class:`ViewParams`); ``focal_band`` the
+    focal lengths (image widths, low and high) the search may reach, None for any.
     """
 
     centre: FloatArray
@@ -57,6 +58,7 @@ class SearchFrame:
     geometry: SideGeometry
     side: Side
     pivot: float = 0.0
+    focal_band: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,7 @@ class ThetaParams:
     reference: Camera
     geometry: SideGeometry
     side: Side
+    focal_band: tuple[float, float] | None = None
 
     def start(self) -> FloatArray:
         c = self.reference
@@ -77,6 +80,10 @@ class ThetaParams:
 
     def camera(self, x: FloatArray) -> Camera:
         w, h = self.reference.width, self.reference.height
+        if self.focal_band is not None:
+            # The coordinate is 10 W / f: the band of f held by clipping it.
+            x = np.array(x, np.float64)
+            x[6] = np.clip(x[6], 10.0 / self.focal_band[1], 10.0 / self.focal_band[0])
         return theta_to_camera(Theta.from_normalized(x, w, h, self.side), self.geometry, w, h)
 
 
@@ -90,12 +97,15 @@ class ViewParams:
     (mesh units) in front of the centre, at most half the centre's depth: a change of focal
     length alone is a dolly zoom that keeps the size of what lies there, and with the pivot
     near the visible outline (rather than at the centre) focal length and scale are nearly
-    independent coordinates for the simplex.
+    independent coordinates for the simplex. With a ``focal_band`` (image widths, low and
+    high) the focal length is held inside it: ``g`` is clipped, and beyond the band the
+    coordinate changes nothing (a flat prior, as a lens known within a tolerance gives).
     """
 
     reference: Camera
     centre: FloatArray
     pivot: float = 0.0
+    focal_band: tuple[float, float] | None = None
 
     def start(self) -> FloatArray:
         return np.zeros(7)
@@ -113,9 +123,12 @@ class ViewParams:
         ref = self.reference
         f0 = ref.focal
         depth0, pix0 = self._centre_view
-        f = f0 * np.exp(x[6])
+        g = x[6]
+        if self.focal_band is not None:
+            g = np.clip(g, np.log(self.focal_band[0] * ref.width / f0), np.log(self.focal_band[1] * ref.width / f0))
+        f = f0 * np.exp(g)
         ahead = min(self.pivot, 0.5 * depth0)
-        z = ahead + (depth0 - ahead) * np.exp(x[6] - x[5])
+        z = ahead + (depth0 - ahead) * np.exp(g - x[5])
         u = pix0[0] + x[3] * ref.width
         v = pix0[1] + x[4] * ref.height
         K = ref.K.copy()
@@ -128,8 +141,8 @@ class ViewParams:
 
     @classmethod
     def about(cls, reference: Camera, frame: SearchFrame) -> ViewParams:
-        """View coordinates about ``reference``, pivoted as ``frame`` says."""
-        return cls(reference, frame.centre, frame.pivot * frame.radius)
+        """View coordinates about ``reference``, pivoted and banded as ``frame`` says."""
+        return cls(reference, frame.centre, frame.pivot * frame.radius, frame.focal_band)
 
     def dolly_zoom(self, factor: float) -> Camera:
         """The reference with its focal length times ``factor`` and the depth following: the
@@ -147,7 +160,7 @@ def _view(reference: Camera, frame: SearchFrame) -> ViewParams:
 
 @PARAMETRIZATIONS.register("theta")
 def _theta(reference: Camera, frame: SearchFrame) -> ThetaParams:
-    return ThetaParams(reference, frame.geometry, frame.side)
+    return ThetaParams(reference, frame.geometry, frame.side, frame.focal_band)
 
 
 def make_parametrization(name: str, reference: Camera, frame: SearchFrame) -> Parametrization:

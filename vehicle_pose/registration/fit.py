@@ -47,7 +47,9 @@ class FitPlan:
     ``coarse_to_fine``: the pyramid's coarse levels before the working size (else one level);
     ``evaluations``: the budget of each level but the last of several; ``resegment``: GrabCut
     again between levels; ``edge_weight``: the edge term's weight (0: none); ``step_scale``
-    scales the first level's simplex.
+    scales the first level's simplex; ``focal_band``: the focal lengths (image widths, low and
+    high) the fit may reach (a lens known from the photo's EXIF), None for any; with a band the
+    perspective probes do not run.
     """
 
     coarse_to_fine: bool
@@ -55,6 +57,7 @@ class FitPlan:
     resegment: bool
     edge_weight: float
     step_scale: float = 1.0
+    focal_band: tuple[float, float] | None = None
 
     @classmethod
     def hinted(cls, options: RegistrationOptions) -> FitPlan:
@@ -110,10 +113,11 @@ def probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
     return factors
 
 
-def search_frame(model: VehicleModel, side: Side, pivot: float) -> SearchFrame:
+def search_frame(model: VehicleModel, side: Side, pivot: float,
+                 focal_band: tuple[float, float] | None = None) -> SearchFrame:
     """What the search coordinates know of ``model`` seen from ``side``."""
     centre, radius = model.mesh.sphere
-    return SearchFrame(centre, radius, model.wheels.side(side), side, pivot)
+    return SearchFrame(centre, radius, model.wheels.side(side), side, pivot, focal_band)
 
 
 def fit(
@@ -143,7 +147,7 @@ def fit(
         side = "left" if options.side == "left" else "right"
     else:
         side = visible_side(start, model.wheels.side("left"))
-    frame = search_frame(model, side, options.probes.dolly_pivot)
+    frame = search_frame(model, side, options.probes.dolly_pivot, plan.focal_band)
 
     seed = silhouette(model, start, renderer)
     if seed.sum() < 16:
@@ -215,7 +219,7 @@ def fit(
 
         budget = budgets.fine_evaluations if li == len(sizes) - 1 and li > 0 else plan.evaluations
         runs = [search(camera, budget)]
-        if li == 1 and options.probes.focal_starts:
+        if li == 1 and options.probes.focal_starts and plan.focal_band is None:
             # The second level also probes dolly zooms of the first level's pose, on the same
             # mask (the perspective is what a simplex corrects least); a probe that beats the
             # main search is searched on.

@@ -19,6 +19,7 @@ import numpy.typing as npt
 from vehicle_pose.errors import PoseError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.photo import ExifFocal
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.register import register
 from vehicle_pose.registration.result import RegistrationResult
@@ -66,6 +67,7 @@ def identify(
     renderer: Renderer | None = None,
     progress: Callable[[str, int, float], None] | None = None,
     photo_size: tuple[int, int] | None = None,
+    exif: ExifFocal | None = None,
 ) -> list[Identification]:
     """Register every model and rank them, best first.
 
@@ -85,7 +87,7 @@ def identify(
 
         try:
             res = register(photo, model, init_camera=init_camera, bbox=bbox, options=options,
-                           renderer=renderer, progress=relay, photo_size=photo_size)
+                           renderer=renderer, progress=relay, photo_size=photo_size, exif=exif)
         except PoseError as exc:
             out.append(Identification(model, None, float("inf"), str(exc)))
             continue
@@ -103,17 +105,18 @@ def register_or_identify(
     renderer: Renderer | None = None,
     progress: Callable[[str, int, float], None] | None = None,
     photo_size: tuple[int, int] | None = None,
+    exif: ExifFocal | None = None,
 ) -> tuple[RegistrationResult, dict[str, Any]]:
     """Register the one model given, or identify the model among several: the winning
     registration and its JSON result (with the ranking under ``identification`` when several
     models were tried). PoseError when no candidate could be registered. ``photo_size`` as
-    for :func:`~vehicle_pose.registration.register.register`."""
+    and ``exif`` as for :func:`~vehicle_pose.registration.register.register`."""
     if len(models) == 1:
         result = register(photo, models[0], init_camera=init_camera, bbox=bbox, options=options,
-                          renderer=renderer, progress=progress, photo_size=photo_size)
+                          renderer=renderer, progress=progress, photo_size=photo_size, exif=exif)
         return result, result.to_dict()
     ranking = identify(photo, models, init_camera=init_camera, bbox=bbox, options=options,
-                       renderer=renderer, progress=progress, photo_size=photo_size)
+                       renderer=renderer, progress=progress, photo_size=photo_size, exif=exif)
     best = ranking[0].result
     if best is None:
         raise PoseError(f"no candidate model could be registered: {ranking[0].error}")

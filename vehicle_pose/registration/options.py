@@ -342,6 +342,11 @@ class Search(_Group):
     sphere_evaluations: int = option(200, "evaluations of each refinement's second stage", low=0)
     sphere_step: float = option(0.3, "first steps of the refinement, in the view coordinates' steps", low=1e-3,
                                 high=10.0)
+    exif_focal: bool = option(True, "without a start camera, the view-sphere search starts from the focal length "
+                              "in the photo's EXIF and keeps within exif_tolerance of it", public=True,
+                              flag="--no-exif-focal")
+    exif_tolerance: float = option(1.0, "factor either way from the EXIF focal length that the search may reach "
+                                   "(1: held at it; docs/decisions/0021-exif-focal.md)", low=1.0, high=10.0)
 
 
 _GROUPS: dict[str, type[Any]] = {

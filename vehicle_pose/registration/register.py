@@ -17,7 +17,7 @@ from vehicle_pose.errors import BlankPhotoError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.pose import camera_to_theta, visible_side
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.photo import ExifFocal, resized, resized_mask
 from vehicle_pose.registration.credibility import confidence, fit_checks, loss_share
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
 from vehicle_pose.registration.hypotheses import photo_pose
@@ -73,6 +73,7 @@ def register(
     progress: Progress | None = None,
     foreground: npt.NDArray[np.bool_] | None = None,
     photo_size: tuple[int, int] | None = None,
+    exif: ExifFocal | None = None,
 ) -> RegistrationResult:
     """Find the camera that makes the model coincide with the vehicle in the photo.
 
@@ -103,6 +104,11 @@ def register(
         The photo's own size when ``photo`` is a reduced copy of it (at least the working size,
         of the same shape within a pixel): the start camera, the box and every camera of the
         result are the photo's own.
+    exif : ExifFocal, optional, keyword-only
+        The focal length the photo's EXIF gives (:func:`~vehicle_pose.photo.read_focal`).
+        Without a start camera (whose focal length wins), the view-sphere search starts from it
+        and keeps within ``options.search.exif_tolerance`` of it; the result's ``focal`` says
+        where its focal length came from, and its ``warnings`` repeat the EXIF's.
 
     Raises
     ------
@@ -138,13 +144,15 @@ def register(
     timings: dict[str, float] = {}
     listed: list[dict[str, Any]] = []
     stage = "shading"
+    lens = Lens(exif)
     if options.search.pose_search == "sphere" and init_camera is None:
         source = "bbox" if bbox is not None else "none"
         # The search without a start camera runs without the edge term, and says so in the
         # options it reports (docs/decisions/0007-no-hint-search.md).
         options = options.replace(edge_weight=0.0)
+        band = lens.band(options)
         found, swept, stage = sphere_pose(work, model, options, renderer, optimizer, box=rect, foreground=fg,
-                                          progress=progress)
+                                          progress=progress, focal_band=band)
         timings["sphere"] = swept.seconds
         levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
         checks = (swept.checks | fit_checks(work, model, found, None, options.color, renderer)
@@ -153,7 +161,7 @@ def register(
         start, method = swept.ranked[0].camera, "view-sphere"
         timings["grabcut"] = grabcut_seconds
         return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
-                       W0, H0, t_start, stage, renderer)
+                       W0, H0, t_start, stage, renderer, lens)
     if init_camera is not None:
         source, method = "init_camera", "given"
         timings["start"] = 0.0
@@ -208,13 +216,42 @@ def register(
                 levels, spent = found.levels, [*spent, found]
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
-                   W0, H0, t_start, stage, renderer)
+                   W0, H0, t_start, stage, renderer, lens)
+
+
+class Lens:
+    """What the photo's EXIF says of the focal length, and whether the search used it."""
+
+    def __init__(self, exif: ExifFocal | None) -> None:
+        self.exif = exif
+        self.used = False
+
+    def band(self, options: RegistrationOptions) -> tuple[float, float] | None:
+        """The focal lengths (image widths) the search may reach: within ``exif_tolerance`` of
+        the EXIF's, None where there is none or the option is off."""
+        if self.exif is None or self.exif.widths is None or not options.search.exif_focal:
+            return None
+        self.used = True
+        k = options.search.exif_tolerance
+        return self.exif.widths / k, self.exif.widths * k
+
+    def report(self, final: Camera) -> dict[str, Any]:
+        """The result's ``focal``: where the focal length came from (``exif`` or ``searched``),
+        the one found (pixels and image widths) and the EXIF's reading (None without EXIF)."""
+        exif = self.exif
+        return {"source": "exif" if self.used else "searched", "pixels": final.focal,
+                "widths": final.focal / final.width,
+                "exif": None if exif is None or (exif.form is None and exif.warning is None and exif.focal_mm is None)
+                else exif.to_dict() | {"pixels": exif.pixels(final.width)}}
+
+    def warnings(self) -> list[str]:
+        return [] if self.exif is None or self.exif.warning is None else [self.exif.warning]
 
 
 def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: VehicleModel,
             options: RegistrationOptions, source: str, method: str, start: Camera, checks: dict[str, float],
             listed: list[dict[str, Any]], timings: dict[str, float], W0: int, H0: int,
-            t_start: float, stage: str, renderer: Renderer) -> RegistrationResult:
+            t_start: float, stage: str, renderer: Renderer, lens: Lens) -> RegistrationResult:
     """The result at the photo's own size, with its part map (:mod:`vehicle_pose.render.parts`)."""
     final = found.camera.scaled(W0, H0)
     t = time.perf_counter()
@@ -244,4 +281,6 @@ def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: Vehi
         candidates=listed,
         pose_stage=stage,
         parts=parts,
+        focal=lens.report(final),
+        warnings=lens.warnings(),
     )

@@ -51,7 +51,10 @@ class RegistrationResult:
     and box, kept where the loss does not explain the photo;
     ``docs/decisions/0012-structure-first.md``). ``parts`` is the part map at the final pose
     (:mod:`vehicle_pose.render.parts`): which part each pixel of the photo shows; the JSON
-    lists the visible parts.
+    lists the visible parts. ``focal`` says where the focal length came from (``source``:
+    ``exif`` where the photo's EXIF held the search, else ``searched``), the one found
+    (``pixels``, ``widths``) and the EXIF's reading (``exif``, None without one);
+    ``warnings`` are what the client should know of its input (EXIF that cannot be right).
     """
 
     camera: Camera
@@ -74,6 +77,8 @@ class RegistrationResult:
     candidates: list[dict[str, Any]] = field(default_factory=list)
     pose_stage: str = "shading"
     parts: PartMap | None = field(default=None, repr=False)
+    focal: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON result: camera, theta, BOP-style fields, loss, counts, timings."""
@@ -95,6 +100,8 @@ class RegistrationResult:
                 "estimated": list(info.estimated),
             },
             "pose_stage": self.pose_stage,
+            "focal": self.focal,
+            "warnings": self.warnings,
             "parts": self.parts.to_list() if self.parts is not None else [],
             "confidence": self.confidence,
             "failed": self.failed,

@@ -202,9 +202,11 @@ def _allowed(templates: ViewTemplates, init: Camera | None, spread: float) -> np
 
 
 def _fit(pose: Pose, costs: list[_Cost], model: VehicleModel, options: RegistrationOptions, optimizer: Optimizer,
-         free: tuple[int, ...], budget: int) -> Pose:
-    """The pose refined in the view coordinates ``free`` (of seven) for ``budget`` evaluations."""
-    params = ViewParams(pose.camera, model.mesh.sphere[0], options.probes.dolly_pivot * model.mesh.sphere[1])
+         free: tuple[int, ...], budget: int, focal_band: tuple[float, float] | None) -> Pose:
+    """The pose refined in the view coordinates ``free`` (of seven) for ``budget`` evaluations,
+    its focal length within ``focal_band`` (image widths) where one is given."""
+    params = ViewParams(pose.camera, model.mesh.sphere[0], options.probes.dolly_pivot * model.mesh.sphere[1],
+                        focal_band)
     index = np.array(free)
     cost = costs[pose.target]
 
@@ -232,13 +234,13 @@ _ALL = tuple(range(7))
 
 
 def _refine(chosen: list[Pose], costs: list[_Cost], model: VehicleModel, options: RegistrationOptions,
-            optimizer: Optimizer, progress: Progress | None) -> list[Pose]:
+            optimizer: Optimizer, progress: Progress | None, focal_band: tuple[float, float] | None) -> list[Pose]:
     """Successive halving: every chosen pose's place, size and focal length fitted with its
     rotation held (a template's placement is coarse, and a rotation refined with it would
     trade against it), then the better half refined in all seven coordinates, and again, until
     one is left; best first."""
     search = options.search
-    pool = [_fit(p, costs, model, options, optimizer, _HOLD, search.sphere_hold) for p in chosen]
+    pool = [_fit(p, costs, model, options, optimizer, _HOLD, search.sphere_hold, focal_band) for p in chosen]
     done: list[Pose] = []
     while pool:
         pool.sort(key=lambda p: p.cost)
@@ -247,7 +249,7 @@ def _refine(chosen: list[Pose], costs: list[_Cost], model: VehicleModel, options
         pool = pool[:keep]
         if progress is not None:
             progress(f"view sphere: refining {len(pool)}", sum(c.count for c in costs), pool[0].cost)
-        pool = [_fit(p, costs, model, options, optimizer, _ALL, search.sphere_evaluations) for p in pool]
+        pool = [_fit(p, costs, model, options, optimizer, _ALL, search.sphere_evaluations, focal_band) for p in pool]
         if len(pool) == 1:
             done += pool
             break
@@ -265,10 +267,14 @@ def sphere_search(
     init: Camera | None = None,
     box: Box | None = None,
     progress: Progress | None = None,
+    focal_band: tuple[float, float] | None = None,
 ) -> SphereSearch:
     """The pose on the working photo ``work`` from the hints (the module docstring).
 
     ``init`` is a start camera and ``box`` the client's box, both for the working photo.
+    ``focal_band`` (image widths, low and high; a lens known from the photo's EXIF) holds the
+    focal length: each placed template is taken to the band's geometric middle by a dolly
+    zoom (its size at the pivot kept) before it is ranked, and refined within the band.
     """
     t0 = time.perf_counter()
     search = options.search
@@ -290,6 +296,7 @@ def sphere_search(
     placed = match(templates, first.chamfer.edges.distance, first.chamfer.tau, small, allowed=allowed,
                    scales=search.sphere_scales, min_iou=search.sphere_iou, stride=search.sphere_stride)
     principal = (0.5 * (w - 1), 0.5 * (h - 1)) if init is None else tuple(init.scaled(w, h).K[:2, 2])
+    pivot = options.probes.dolly_pivot * model.mesh.sphere[1]
     ranked: list[Pose] = []
     for k in range(len(small)):
         order = np.argsort(placed.cost[:, k])
@@ -298,6 +305,9 @@ def sphere_search(
                 break
             cam = templates.camera(int(t), placed.focal[t, k], placed.u[t, k], placed.v[t, k], principal, w, h)
             full = cam.scaled(Wf, Hf)
+            if focal_band is not None:
+                lens = float(np.sqrt(focal_band[0] * focal_band[1])) * Wf
+                full = ViewParams(full, model.mesh.sphere[0], pivot).dolly_zoom(lens / full.focal)
             ranked.append(Pose(full, int(t), k, costs[k](full), detail={"placed": float(placed.cost[t, k])}))
     if init is not None:
         ranked.append(Pose(init, -1, 0, first(init), detail={"start": 1.0}))
@@ -315,7 +325,7 @@ def sphere_search(
         for p in chosen:
             p.cost = p.ranked
         if chosen:
-            refined += _refine(chosen, costs, model, options, optimizer, progress)
+            refined += _refine(chosen, costs, model, options, optimizer, progress, focal_band)
     refined.sort(key=lambda p: p.cost)
     best = refined[0]
     rivals = [p.cost for p in refined[1:] if rotation_error(p.camera.R, best.camera.R) >= RIVAL_APART]
@@ -355,8 +365,8 @@ def sphere_fit(work: npt.NDArray[np.uint8], model: VehicleModel, searched: Spher
 
 def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: RegistrationOptions, renderer: Renderer,
                 optimizer: Optimizer, *, init: Camera | None = None, box: Box | None = None,
-                foreground: npt.NDArray[np.bool_] | None = None,
-                progress: Progress | None = None) -> tuple[Fit, SphereSearch, str]:
+                foreground: npt.NDArray[np.bool_] | None = None, progress: Progress | None = None,
+                focal_band: tuple[float, float] | None = None) -> tuple[Fit, SphereSearch, str]:
     """The search's pose, polished by the shading fit where the shading may explain the photo.
 
     The search's pose is segmented and scored by the named loss (:func:`sphere_fit`); where
@@ -364,10 +374,11 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     coarse-to-fine shading fit runs from it and its pose is kept when its loss is at most
     ``shading_trust`` (the loss then explains the photo, and fits it more precisely than the
     edges); else the search's pose stands. Returns the fit, the search and which stage's pose
-    it is (``shading`` or ``structure``).
+    it is (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`, for the
+    shading fit too.
     """
     searched = sphere_search(work, model, model.templates(renderer), options, renderer, optimizer, init=init,
-                             box=box, progress=progress)
+                             box=box, progress=progress, focal_band=focal_band)
     st = options.structure
     # Each refined pose scored by the named loss on its target's segmentation: where one is
     # explained by the shading (its loss over its maximum at most shading_polish), the shading
@@ -379,7 +390,8 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     k = int(np.argmin(shares))
     if shares[k] <= st.shading_polish:
         plan = FitPlan(options.pyramid.coarse_to_fine, st.polish_evaluations,
-                       options.segmentation.grabcut and options.segmentation.resegment, options.terms.edge_weight)
+                       options.segmentation.grabcut and options.segmentation.resegment, options.terms.edge_weight,
+                       focal_band=focal_band)
         polished = fit(work, model, bests[k].camera, options, plan, renderer, optimizer, progress, foreground,
                        box=box)
         if loss_share(polished.loss, work, options.color) <= st.shading_trust:
