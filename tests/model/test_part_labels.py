@@ -1,20 +1,27 @@
-"""Part labels: names read through the synonym table, the geometric partition, the store."""
+"""Part labels: names read through the synonym table, the geometric partition, part files (the
+shipped models labelled by construction), the store."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.errors import ModelError
+from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.model.parts import (
+    LEGEND,
     VOCABULARY,
     label_faces,
     model_frame,
     name_part,
+    part_file_text,
+    read_part_file,
 )
+from vehicle_pose.model.procedural import SEDAN, construction_parts, write_model
 
 
 @pytest.mark.parametrize(("names", "kind"), [
@@ -36,9 +43,10 @@ def test_names_say_the_part(names, kind):
     assert name_part(*names) == kind
 
 
-def test_the_shipped_models_named_parts_are_read_and_the_body_partitioned(library):
+def test_the_shipped_models_named_parts_are_read_and_the_body_partitioned_without_their_part_files(library):
     """The shipped models name their wheels and lamps (``tyre_fl``, ``headlight_r``): those are
-    read; their one-piece body and glass name no panel and are partitioned, marked estimated."""
+    read; without their part files, their one-piece body and glass name no panel and are
+    partitioned, marked estimated."""
     for model_id in library.ids():
         model = library.load(model_id)
         labels = label_faces(model.mesh, model.info.up, model.wheels)
@@ -53,6 +61,83 @@ def test_the_shipped_models_named_parts_are_read_and_the_body_partitioned(librar
                 assert name.startswith("wheel_" if part.kind != "light" else ("headlamp_", "taillamp_")), name
             else:
                 assert estimated.all() and len(got) > 3, (model_id, part.name)
+
+
+def test_the_shipped_models_are_labelled_by_construction(library):
+    """Every face of the shipped models is labelled from the names or the part file (none
+    estimated), though the loader reorders the body's faces; each panel is where it was built."""
+    for model_id in library.ids():
+        model = library.load(model_id)
+        assert model.info.parts_path is not None and model.info.parts_path.name == "parts.json"
+        labels = model.part_labels()
+        assert not labels.estimated.any(), model_id
+        frame = model_frame(model.info.up, model.wheels)
+        centres = frame.local(np.concatenate([p.vertices[p.faces.astype(np.int64)].mean(1)
+                                              for p in model.mesh.parts]))
+        names = np.array([VOCABULARY[k - 1] for k in labels.labels]).astype(str)
+        assert (centres[np.char.endswith(names, "_left"), 1] > 0).all()
+        assert (centres[np.char.endswith(names, "_right"), 1] < 0).all()
+        # the trunk (a pickup's bed) behind the cabin, the hood before it
+        assert centres[names == "trunk", 0].max() < centres[names == "roof", 0].min() < \
+            centres[names == "roof", 0].max() < centres[names == "hood", 0].min()
+        assert centres[names == "roof", 2].mean() > centres[names == "hood", 2].mean()
+        for part in ("front_bumper", "rear_bumper", "front_door_left", "rear_door_right", "front_fender_right",
+                     "rear_quarter_left", "windscreen", "front_door_window_left"):
+            assert (names == part).sum() > 0, (model_id, part)
+
+
+def test_a_part_file_is_read_by_the_faces_places_whatever_order_the_loader_keeps(tmp_path):
+    write_model(SEDAN, tmp_path)
+    folder = tmp_path / SEDAN.id
+    built = construction_parts(SEDAN)
+    listed = read_part_file(folder / "parts.json", folder / "model.glb")
+    assert set(listed) == {"body", "glass"}
+    assert [VOCABULARY[k - 1] for k in listed["body"].labels] == built["body"]
+    model = ModelLibrary(tmp_path).load(SEDAN.id)
+    labels = model.part_labels()
+    # The loader's body faces are another order than the file's: labels follow the places.
+    body = next(p for p in model.mesh.parts if p.name == "body")
+    first = sum(len(p.faces) for p in model.mesh.parts[:model.mesh.parts.index(body)])
+    centroids = body.vertices[body.faces.astype(np.int64)].mean(1)
+    assert not np.allclose(centroids, listed["body"].centroids)
+    k = int(np.argmin(np.linalg.norm(listed["body"].centroids - centroids[0], axis=1)))
+    assert labels.labels[first] == listed["body"].labels[k]
+
+
+def test_a_part_file_text_reads_back_and_names_only_known_parts(tmp_path):
+    text = part_file_text({"body": ["hood", "hood", "roof", "hood"]})
+    assert json.loads(text)["geometries"]["body"] == [["hood", 2], ["roof", 1], ["hood", 1]]
+    with pytest.raises(KeyError):
+        part_file_text({"body": ["bonnet"]})
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda d: d["geometries"]["body"].__setitem__(0, ["bonnet", 5]), "not a valid part file"),
+    (lambda d: d["geometries"]["body"].append(["hood", 3]), "lists"),
+    (lambda d: d["geometries"].__setitem__("spoiler", [["trunk", 4]]), "spoiler"),
+    (lambda d: d.pop("geometries"), "not a valid part file"),
+])
+def test_a_part_file_that_cannot_be_right_is_a_model_error(tmp_path, change, message):
+    write_model(SEDAN, tmp_path)
+    folder = tmp_path / SEDAN.id
+    data = json.loads((folder / "parts.json").read_text())
+    change(data)
+    (folder / "parts.json").write_text(json.dumps(data))
+    with pytest.raises(ModelError, match=message):
+        read_part_file(folder / "parts.json", folder / "model.glb")
+    with pytest.raises(ModelError, match=message):
+        ModelLibrary(tmp_path).load(SEDAN.id).part_labels()
+
+
+def test_faces_a_part_file_does_not_place_are_labelled_without_it(sedan, caplog):
+    """A mesh changed since its part file was written (here decimated): the faces the file does
+    not place are partitioned, estimated, with a warning; the ones it places keep its labels."""
+    changed = VehicleModel(sedan.info, sedan.mesh.decimated(6000))
+    with caplog.at_level("WARNING"):
+        labels = changed.part_labels()
+    assert "not where the part file has them" in caplog.text
+    assert labels.estimated.any() and not labels.estimated.all()
+    assert LEGEND["hood"] in labels.labels
 
 
 def test_a_mesh_that_names_nothing_is_partitioned_and_marked_estimated(sedan):

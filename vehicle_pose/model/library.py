@@ -16,7 +16,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from vehicle_pose.errors import ModelError, UnknownModelError
 from vehicle_pose.model.metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
@@ -96,14 +96,28 @@ class VehicleModel:
         return ViewTemplates.from_arrays(arrays)
 
     def part_labels(self) -> PartLabels:
-        """Every face's part (:func:`~vehicle_pose.model.parts.label_faces`), labelled once per
-        model, axes and wheel metadata and kept with its prepared levels."""
-        from vehicle_pose.model.parts import LABELLING, PartLabels, label_faces
+        """Every face's part (:func:`~vehicle_pose.model.parts.label_faces`, with the model's part
+        file where it has one), labelled once per model, axes, wheel metadata and part file and
+        kept with its prepared levels."""
+        import hashlib
+
+        from vehicle_pose.model.parts import LABELLING, PartLabels, label_faces, read_part_file
 
         assert self.levels is not None
-        key = f"{LABELLING}|{self.info.up} {self.info.forward}|{self.wheels.to_dict()}"
-        arrays = self.levels.arrays("parts", key, lambda: label_faces(self.mesh, self.info.up, self.wheels).arrays())
-        return PartLabels.from_arrays(arrays)
+        path = self.info.parts_path
+        listed = "none"
+        if path is not None:
+            try:
+                listed = hashlib.sha256(path.read_bytes()).hexdigest()
+            except OSError as exc:
+                raise ModelError(f"cannot read part file {path}: {exc.strerror}") from None
+        key = f"{LABELLING}|{self.info.up} {self.info.forward}|{self.wheels.to_dict()}|{listed}"
+
+        def compute() -> dict[str, Any]:
+            given = read_part_file(path, self.info.mesh_path) if path is not None else None
+            return label_faces(self.mesh, self.info.up, self.wheels, given).arrays()
+
+        return PartLabels.from_arrays(self.levels.arrays("parts", key, compute))
 
     def prepare(self, renderer: Renderer, budgets: Sequence[int] | None = None,
                 progress: Callable[[str], None] | None = None) -> None:

@@ -207,7 +207,9 @@ def _lower_hull(points: FloatArray) -> FloatArray:
 class ModelInfo:
     """What the library knows of one vehicle model.
 
-    ``mesh_path`` is absolute; ``estimated`` lists the metadata fields estimated from the mesh.
+    ``mesh_path`` is absolute; ``estimated`` lists the metadata fields estimated from the mesh;
+    ``parts_path`` is the model's part file (``parts`` in the metadata, relative to it; each
+    face's part, :func:`~vehicle_pose.model.parts.read_part_file`), None without one.
     """
 
     id: str
@@ -221,6 +223,7 @@ class ModelInfo:
     estimated: tuple[str, ...] = ()
     texture_dirs: tuple[Path, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
+    parts_path: Path | None = None
 
     @classmethod
     def from_json(cls, path: str | Path) -> ModelInfo:
@@ -240,7 +243,7 @@ class ModelInfo:
         w = data.get("wheels") or {}
         wheels = WheelGeometry.from_dict(w) if all(k in w for k in _WHEEL_KEYS) else None
         known = {"id", "name", "mesh", "units", "meters_per_unit", "up", "forward", "wheels", "estimated",
-                 "texture_dirs"}
+                 "texture_dirs", "parts"}
         return cls(
             id=str(data["id"]),
             name=str(data.get("name", data["id"])),
@@ -253,6 +256,7 @@ class ModelInfo:
             estimated=tuple(data.get("estimated", ())),
             texture_dirs=tuple((base / d).resolve() for d in data.get("texture_dirs", ())),
             extra={k: v for k, v in data.items() if k not in known},
+            parts_path=(base / data["parts"]).resolve() if data.get("parts") else None,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -266,4 +270,4 @@ class ModelInfo:
             "forward": self.forward,
             "wheels": self.wheels.to_dict() if self.wheels is not None else None,
             "estimated": list(self.estimated),
-        }
+        } | ({"parts": str(self.parts_path)} if self.parts_path is not None else {})

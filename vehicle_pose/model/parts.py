@@ -16,25 +16,36 @@ the rear ones, the doors the sides between, the bumpers the ends beyond the whee
 the wheels' tops, hood and trunk the surfaces facing up in front of and behind the cabin. Those
 labels are estimates, and the model's :class:`PartLabels` say which parts were estimated.
 
-The procedural models of ``vehicle_models/`` name their tyres, rims and lamps; their one-piece
-body and glass are partitioned.
+A model may also list its faces' parts in a part file beside its mesh (``parts`` in its
+``model.json``; :func:`read_part_file`): for each geometry it names, the part of every face in
+order, as a model built by a program knows them. The procedural models of ``vehicle_models/``
+do so for their one-piece body and glass (labelled by construction), and name their tyres, rims
+and lamps.
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import re
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.errors import ModelError
 from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.model.metadata import WheelGeometry, parse_axis
 
-__all__ = ["LABELLING", "VOCABULARY", "LEGEND", "COLOURS", "SYNONYMS", "PartLabels", "face_geometry", "label_faces",
-           "geometric_labels", "name_part", "model_frame", "part_index"]
+log = logging.getLogger(__name__)
 
-LABELLING = 1
+__all__ = ["LABELLING", "VOCABULARY", "LEGEND", "COLOURS", "SYNONYMS", "PartLabels", "face_geometry", "label_faces",
+           "geometric_labels", "name_part", "model_frame", "part_index", "read_part_file", "part_file_text",
+           "ListedParts"]
+
+LABELLING = 2
 """Version of the labelling; raise it whenever the labels of a mesh change (prepared models
 keep their labels under it)."""
 
@@ -272,12 +283,13 @@ def _body_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], side: npt
     roof = above & (x >= s.cabin[0]) & (x <= s.cabin[1]) & (np.abs(n[:, 1]) < 0.6)
     out[roof] = "roof"
     # the ends beyond the wheel arches: below the wheels' tops the bumpers, above them the
-    # faces that look forward or back belong to the hood or the trunk (or tailgate)
+    # faces that look forward or back belong to the hood or the trunk (or a tailgate, which
+    # reaches above the belt: the back of a van or an estate)
     lid = 2.0 * frame.radius
     ahead, behind = x > frame.front_axle + frame.arch, x < frame.rear_axle - frame.arch
     end = np.abs(n[:, 0]) > 0.7
     out[ahead & (z >= lid) & end & ~above] = "hood"
-    out[behind & (z >= lid) & end & ~above] = "trunk"
+    out[behind & (z >= lid) & end & (x < s.cabin[0])] = "trunk"
     out[ahead & (z < lid)] = "front_bumper"
     out[behind & (z < lid)] = "rear_bumper"
     return out
@@ -344,9 +356,80 @@ def _placed(kind: str, c: npt.NDArray[np.float64], split: float) -> str:
     return kind  # front_bumper, rear_bumper, hood, roof, trunk, windscreen, rear_window, other
 
 
-def label_faces(mesh: Mesh, up_axis: str, wheels: WheelGeometry) -> PartLabels:
-    """Every face's part: from the mesh's names where they say it (:func:`name_part`), from the
-    geometric partition elsewhere (:func:`geometric_labels`, marked estimated).
+def part_file_text(parts: Mapping[str, Sequence[str]]) -> str:
+    """The text of a part file: for each geometry, the part of each of its faces in order (ids of
+    :data:`VOCABULARY`), as runs ``[part, count]``."""
+    runs: dict[str, list[list[str | int]]] = {}
+    for geometry, labels in parts.items():
+        out: list[list[str | int]] = []
+        for label in labels:
+            part_index(label)  # a KeyError names an id outside the vocabulary
+            if out and out[-1][0] == label:
+                out[-1][1] = int(out[-1][1]) + 1
+            else:
+                out.append([label, 1])
+        runs[geometry] = out
+    return json.dumps({"format": "vehicle-pose parts 1", "geometries": runs}, separators=(",", ":")) + "\n"
+
+
+@dataclass(frozen=True)
+class ListedParts:
+    """A part file's labels of one geometry: each face's label and the face's centroid in the
+    mesh file's frame (the loader may reorder a part's faces; a face is found by its place)."""
+
+    labels: npt.NDArray[np.uint8]
+    centroids: npt.NDArray[np.float64]
+
+
+def read_part_file(path: str | Path, mesh_path: str | Path) -> dict[str, ListedParts]:
+    """The labels of every geometry the part file ``path`` lists (:func:`part_file_text`), each
+    with its faces' centroids read from the mesh file ``mesh_path``, in the file's order.
+    ModelError for a file that cannot be read, names an unknown part or a geometry the mesh file
+    lacks, or lists another number of faces than the geometry has."""
+    import trimesh
+
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+        listed = {}
+        for geometry, runs in data["geometries"].items():
+            counts = [int(n) for _, n in runs]
+            if any(n < 1 for n in counts):
+                raise ValueError(f"a run of {geometry!r} is empty")
+            listed[str(geometry)] = np.repeat(np.array([part_index(str(k)) for k, _ in runs], np.uint8), counts)
+    except OSError as exc:
+        raise ModelError(f"cannot read part file {p}: {exc.strerror}") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ModelError(f"part file {p} is not a valid part file: {exc}") from None
+    try:
+        scene = trimesh.load(str(mesh_path), force="scene")
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise ModelError(f"cannot load mesh {Path(mesh_path).name} for its part file: {exc}") from None
+    out = {}
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        if name not in listed or name in out:
+            continue
+        geom = scene.geometry[name].copy()
+        geom.apply_transform(transform)
+        tris = np.asarray(geom.vertices, np.float64)[np.asarray(geom.faces, np.int64)]
+        if len(tris) != len(listed[name]):
+            raise ModelError(f"part file {p} lists {len(listed[name])} faces of {name!r}; the mesh has {len(tris)}")
+        out[name] = ListedParts(listed[name], tris.mean(1))
+    missing = sorted(set(listed) - set(out))
+    if missing:
+        raise ModelError(f"part file {p} lists {', '.join(map(repr, missing))}, which the mesh does not have")
+    return out
+
+
+def label_faces(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
+                given: Mapping[str, ListedParts] | None = None) -> PartLabels:
+    """Every face's part: from ``given`` (a part file's labels by geometry name,
+    :func:`read_part_file`) for the geometries it lists, each face labelled as the listed face
+    at its centroid; from the mesh's names where they say it (:func:`name_part`); from the
+    geometric partition elsewhere (:func:`geometric_labels`, marked estimated). A face of a
+    listed geometry at no listed face's centroid (a mesh changed since its part file was written:
+    decimated, edited) is labelled as if the file did not list it, and a warning is logged.
 
     A named part is one part (a door, a wheel) placed as a whole: front or rear, left or right
     by the mean of its faces' centroids. Side windows and parts that hold both sides of the car
@@ -373,4 +456,20 @@ def label_faces(mesh: Mesh, up_axis: str, wheels: WheelGeometry) -> PartLabels:
                 continue
             labels[start:start + count] = part_index(_placed(kind, local.mean(0), frame.door_split))
         start += count
+    if given:
+        from scipy.spatial import cKDTree
+
+        tolerance = 1e-6 * float(np.ptp(np.concatenate([p.vertices for p in mesh.parts]), axis=0).max())
+        start = 0
+        for p, count in zip(mesh.parts, counts, strict=True):
+            listed = given.get(p.name)
+            if listed is not None:
+                far, nearest = cKDTree(listed.centroids).query(p.vertices[p.faces.astype(np.int64)].mean(1))
+                found = far <= tolerance
+                if not found.all():
+                    log.warning("%d of %d faces of %r are not where the part file has them: labelled without it",
+                                int((~found).sum()), count, p.name)
+                labels[start:start + count][found] = listed.labels[nearest[found]]
+                estimated[start:start + count][found] = False
+            start += count
     return PartLabels(labels, estimated)

@@ -3,7 +3,10 @@
 The body is a loft of rounded cross-sections along the car's length, following a side profile
 and arching over the wheels; the greenhouse narrows towards the roof and its side faces form the
 glass part. Axes: forward +x, left +y, up +z, metres, ground at z = 0. The wheel metadata of a
-generated car is exact.
+generated car is exact, and so are its part labels: every face of the body and the glass is
+labelled by the panel or window it was built as (:func:`construction_parts`), written beside
+the model as ``parts.json`` (the body stays one surface: panels split apart would shade their
+seams apart).
 
 Run ``python -m vehicle_pose.model.procedural DIR`` to (re)write the shipped models into DIR.
 """
@@ -20,8 +23,10 @@ import numpy.typing as npt
 import trimesh
 
 from vehicle_pose.model.metadata import WheelGeometry
+from vehicle_pose.model.parts import part_file_text
 
-__all__ = ["CarSpec", "SEDAN", "HATCHBACK", "SUV", "VAN", "PICKUP", "SPECS", "build_car", "write_model"]
+__all__ = ["CarSpec", "SEDAN", "HATCHBACK", "SUV", "VAN", "PICKUP", "SPECS", "build_car", "construction_parts",
+           "write_model"]
 
 
 @dataclass(frozen=True)
@@ -156,7 +161,21 @@ def _profile(spec: CarSpec, x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.
     return bottom, np.maximum(top, bottom + 0.1)
 
 
-def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
+@dataclass(frozen=True)
+class _Loft:
+    """The body's loft: vertices, triangles, their centroids, each triangle's place around the
+    cross-section (``rise``: the sine, 1 on top, -1 underneath), the greenhouse's side faces
+    (``glass``) and the end caps (``cap``)."""
+
+    vertices: npt.NDArray[np.float64]
+    tris: npt.NDArray[np.int64]
+    centroids: npt.NDArray[np.float64]
+    rise: npt.NDArray[np.float64]
+    glass: npt.NDArray[np.bool_]
+    cap: npt.NDArray[np.bool_]
+
+
+def _loft(spec: CarSpec) -> _Loft:
     half = spec.length / 2
     xs = np.linspace(half, -half, spec.stations)
     bottom, top = _profile(spec, xs)
@@ -199,11 +218,66 @@ def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
         & ~roofish
         & (tris[:, 0] < n * r)
     )
-    body = trimesh.Trimesh(v, tris[~glass], process=True)
-    glass_mesh = trimesh.Trimesh(v, tris[glass], process=True)
+    return _Loft(v, tris, cent, seg[ring_j], glass, tris[:, 0] >= n * r)
+
+
+def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
+    loft = _loft(spec)
+    body = trimesh.Trimesh(loft.vertices, loft.tris[~loft.glass], process=True)
+    glass_mesh = trimesh.Trimesh(loft.vertices, loft.tris[loft.glass], process=True)
     body.remove_unreferenced_vertices()
     glass_mesh.remove_unreferenced_vertices()
     return body, glass_mesh
+
+
+def _plateau(spec: CarSpec) -> tuple[float, float]:
+    """The length range (rear, front) of the profile's roof: where it stands within 10 % of its
+    highest point."""
+    high = max(z for _, z in spec.top)
+    xs = [x for x, z in spec.top if z >= 0.9 * high]
+    return min(xs), max(xs)
+
+
+def construction_parts(spec: CarSpec) -> dict[str, list[str]]:
+    """The part (an id of :data:`vehicle_pose.model.parts.VOCABULARY`) each face of the body and
+    of the glass was built as, in the order of their faces in the model's mesh: from the spec's
+    own measures (its wheelbase, arches, greenhouse, belt and profile), not from the finished
+    surface."""
+    loft = _loft(spec)
+    x, y, z = loft.centroids[:, 0], loft.centroids[:, 1], loft.centroids[:, 2]
+    half = spec.length / 2
+    side = np.where(y >= 0, "left", "right")
+    rear_roof, front_roof = _plateau(spec)
+    xf, xr = spec.wheelbase / 2, -spec.wheelbase / 2
+    arch = spec.wheel_radius + 0.06 + 0.2  # the arch's cut-out and the panel's lip around it
+    split = 0.5 * ((xr + arch) + (xf - arch))
+    out = np.array([f"front_door_{s}" for s in side], dtype=object)
+    out[x < split] = [f"rear_door_{s}" for s in side[x < split]]
+    out[x >= xf - arch] = [f"front_fender_{s}" for s in side[x >= xf - arch]]
+    out[x <= xr + arch] = [f"rear_quarter_{s}" for s in side[x <= xr + arch]]
+    top = loft.rise > 0.5
+    out[top & (x > spec.glass_x[1])] = "hood"
+    out[top & (x < spec.glass_x[0])] = "trunk"
+    out[top & (x >= spec.glass_x[0]) & (x <= spec.glass_x[1])] = "roof"
+    # The pillars between the windows belong to the door below them.
+    upper = (z > spec.belt + 0.04) & ~top & (x >= spec.glass_x[0]) & (x <= spec.glass_x[1])
+    out[upper] = [f"{'front' if xx >= split else 'rear'}_door_{s}" for xx, s in zip(x[upper], side[upper],
+                                                                                      strict=True)]
+    # The ends, where the loft's floor rises: the bumpers up to the profile's first and last
+    # heights; above them the end caps are the hood's nose and the trunk's (or tailgate's) back.
+    front_top, rear_top = spec.top[0][1], spec.top[-1][1]
+    out[(x > half - 0.45) & ~top & (z < front_top)] = "front_bumper"
+    out[(x < -half + 0.45) & ~top & (z < rear_top)] = "rear_bumper"
+    cap = loft.cap
+    out[cap & (x > 0)] = np.where(z[cap & (x > 0)] < front_top, "front_bumper", "hood")
+    out[cap & (x < 0)] = np.where(z[cap & (x < 0)] < rear_top, "rear_bumper", "trunk")
+    windows = np.array([f"quarter_window_{s}" for s in side], dtype=object)
+    windows[x >= split] = [f"front_door_window_{s}" for s in side[x >= split]]
+    middle = (x < split) & (x >= xr + arch)
+    windows[middle] = [f"rear_door_window_{s}" for s in side[middle]]
+    windows[x > front_roof] = "windscreen"
+    windows[x < rear_roof] = "rear_window"
+    return {"body": [str(k) for k in out[~loft.glass]], "glass": [str(k) for k in windows[loft.glass]]}
 
 
 def _wheel_parts(spec: CarSpec) -> list[tuple[str, trimesh.Trimesh]]:
@@ -260,15 +334,17 @@ def build_car(spec: CarSpec = SEDAN) -> tuple[trimesh.Scene, WheelGeometry]:
 
 
 def write_model(spec: CarSpec, root: str | Path) -> Path:
-    """Write ``root/<id>/model.glb`` and ``model.json``; returns the metadata path."""
+    """Write ``root/<id>/model.glb``, ``parts.json`` and ``model.json``; returns the metadata path."""
     folder = Path(root) / spec.id
     folder.mkdir(parents=True, exist_ok=True)
     scene, wheels = build_car(spec)
     (folder / "model.glb").write_bytes(scene.export(file_type="glb"))
+    (folder / "parts.json").write_text(part_file_text(construction_parts(spec)))
     meta = {
         "id": spec.id,
         "name": spec.name,
         "mesh": "model.glb",
+        "parts": "parts.json",
         "units": "m",
         "meters_per_unit": 1.0,
         "up": "+z",
