@@ -274,7 +274,9 @@ def sphere_search(
     ``init`` is a start camera and ``box`` the client's box, both for the working photo.
     ``focal_band`` (image widths, low and high; a lens known from the photo's EXIF) holds the
     focal length: each placed template is taken to the band's geometric middle by a dolly
-    zoom (its size at the pivot kept) before it is ranked, and refined within the band.
+    zoom (its size at the pivot kept) before it is ranked, and refined there (the edges do not
+    tell focal lengths within a few per cent apart: a search within the band ends on its edge
+    as often as not, docs/decisions/0021-exif-focal.md).
     """
     t0 = time.perf_counter()
     search = options.search
@@ -297,6 +299,7 @@ def sphere_search(
                    scales=search.sphere_scales, min_iou=search.sphere_iou, stride=search.sphere_stride)
     principal = (0.5 * (w - 1), 0.5 * (h - 1)) if init is None else tuple(init.scaled(w, h).K[:2, 2])
     pivot = options.probes.dolly_pivot * model.mesh.sphere[1]
+    lens = None if focal_band is None else float(np.sqrt(focal_band[0] * focal_band[1]))
     ranked: list[Pose] = []
     for k in range(len(small)):
         order = np.argsort(placed.cost[:, k])
@@ -305,9 +308,8 @@ def sphere_search(
                 break
             cam = templates.camera(int(t), placed.focal[t, k], placed.u[t, k], placed.v[t, k], principal, w, h)
             full = cam.scaled(Wf, Hf)
-            if focal_band is not None:
-                lens = float(np.sqrt(focal_band[0] * focal_band[1])) * Wf
-                full = ViewParams(full, model.mesh.sphere[0], pivot).dolly_zoom(lens / full.focal)
+            if lens is not None:
+                full = ViewParams(full, model.mesh.sphere[0], pivot).dolly_zoom(lens * Wf / full.focal)
             ranked.append(Pose(full, int(t), k, costs[k](full), detail={"placed": float(placed.cost[t, k])}))
     if init is not None:
         ranked.append(Pose(init, -1, 0, first(init), detail={"start": 1.0}))
@@ -325,7 +327,8 @@ def sphere_search(
         for p in chosen:
             p.cost = p.ranked
         if chosen:
-            refined += _refine(chosen, costs, model, options, optimizer, progress, focal_band)
+            refined += _refine(chosen, costs, model, options, optimizer, progress,
+                               None if lens is None else (lens, lens))
     refined.sort(key=lambda p: p.cost)
     best = refined[0]
     rivals = [p.cost for p in refined[1:] if rotation_error(p.camera.R, best.camera.R) >= RIVAL_APART]
@@ -374,8 +377,9 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     coarse-to-fine shading fit runs from it and its pose is kept when its loss is at most
     ``shading_trust`` (the loss then explains the photo, and fits it more precisely than the
     edges); else the search's pose stands. Returns the fit, the search and which stage's pose
-    it is (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`, for the
-    shading fit too.
+    it is (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the
+    shading fit searches the focal length within it (where the shading explains the photo, it
+    tells the focal length more precisely than a rounded EXIF).
     """
     searched = sphere_search(work, model, model.templates(renderer), options, renderer, optimizer, init=init,
                              box=box, progress=progress, focal_band=focal_band)
