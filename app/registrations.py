@@ -29,6 +29,7 @@ from vehicle_pose import (
     PhotoTooLargeError,
 )
 from vehicle_pose.errors import UnknownModelError
+from vehicle_pose.model.library import AUTO
 from vehicle_pose.photo import verify_photo
 from vehicle_pose.search.views import parse_bbox
 
@@ -68,13 +69,9 @@ def parse_hints(
     camera = None
     if init_camera:
         try:
-            parsed = Camera.from_dict(json.loads(init_camera))
+            parsed = Camera.from_json(init_camera, what="init_camera")
             parsed.for_photo(photo.width, photo.height)
             camera = parsed.to_dict()
-        except json.JSONDecodeError as exc:
-            raise Problem(422, "invalid-camera", f"init_camera is not valid JSON: {exc.msg}") from None
-        except (ValueError, RecursionError) as exc:  # a 5000-digit integer, 100 000 nested brackets
-            raise Problem(422, "invalid-camera", f"init_camera cannot be read: {type(exc).__name__}") from None
         except CameraError as exc:
             raise Problem(422, "invalid-camera", str(exc)) from None
     box = None
@@ -106,22 +103,26 @@ def _explain(exc: ValidationError) -> str:
     return "; ".join(parts) + (f" (and {more} more)" if more > 0 else "")
 
 
-def check_model(model_id: str) -> list[str]:
-    """The model ids named by ``model_id`` (one id, ``a,b,c`` or ``auto``); 422 before anything
-    is stored or queued when one is unknown or the field is too long to keep."""
+def check_model(model_id: str) -> str:
+    """The model field as kept: one id, ``a,b,c`` (spaces around the ids dropped) or ``auto``;
+    422 before anything is stored or queued when an id is unknown or the field is too long."""
     if len(model_id) > 64:
         raise Problem(422, "unknown-model", "model_id must be at most 64 characters", model_id=model_id[:64])
     try:
-        return get_library().resolve(model_id)
+        ids = get_library().resolve(model_id)
     except UnknownModelError as exc:
         raise Problem(422, "unknown-model", str(exc), model_id=model_id) from None
+    return AUTO if model_id.strip() == AUTO else ",".join(ids)
 
 
-def request_hash(photo: bytes, *fields: str | None) -> str:
-    """Fingerprint of a request, to tell a retry from a different request reusing a key."""
+def request_hash(photo: bytes, model_id: str,
+                 hints: tuple[dict[str, Any] | None, list[float] | None, dict[str, Any]]) -> str:
+    """Fingerprint of a request, to tell a retry from a different request reusing a key: the
+    photo's bytes and the hints as parsed (so spacing, key order and number spelling in the
+    client's JSON do not make a retry another request)."""
     h = hashlib.sha256(photo)
-    for f in fields:
-        h.update(b"\x00" + (f or "").encode())
+    h.update(b"\x00" + model_id.encode())
+    h.update(b"\x00" + json.dumps(hints, sort_keys=True, separators=(",", ":")).encode())
     return h.hexdigest()
 
 

@@ -59,7 +59,8 @@ def _start_redis(data_dir: Path, port: int | None = None,
             "(scripts/setup.sh does) or set VP_BROKER_URL to a running Redis"
         )
     folder = data_dir / "redis"
-    folder.mkdir(parents=True, exist_ok=True)
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    folder.chmod(0o700)
     port = port or _free_port()
     # A password of this start: another local user cannot reach the queue. It goes in on stdin
     # (redis-server's "-" config file), not in the arguments that every user's ps shows.
@@ -69,6 +70,7 @@ def _start_redis(data_dir: Path, port: int | None = None,
          "--appendonly", "yes", "--save", "", "--daemonize", "no", "--loglevel", "warning"],
         stdin=subprocess.PIPE,
         stdout=subprocess.DEVNULL,
+        umask=0o077,  # the append-only files hold the jobs' hints: this user's alone
     )
     assert proc.stdin is not None
     proc.stdin.write(f"requirepass {password}\n".encode())

@@ -22,12 +22,14 @@ _BASIC_CHALLENGE = {"WWW-Authenticate": 'Basic realm="vehicle-pose admin", chars
 
 
 def _presented_key(request: Request) -> str | None:
-    """The API key from ``Authorization: Bearer <key>`` or Basic auth (the password is the key)."""
+    """The API key from ``Authorization: Bearer <key>``, or on the admin pages (a browser's
+    login) from Basic auth, the password being the key. The API takes Bearer keys only: a
+    client that sends its key as Basic auth is told so, not let in."""
     header = request.headers.get("authorization", "")
     scheme, _, value = header.partition(" ")
     if scheme.lower() == "bearer" and value.strip():
         return value.strip()
-    if scheme.lower() == "basic" and value.strip():
+    if scheme.lower() == "basic" and value.strip() and request.url.path.startswith("/admin"):
         try:
             _, _, password = base64.b64decode(value.strip(), validate=True).decode().partition(":")
         except (binascii.Error, UnicodeDecodeError):

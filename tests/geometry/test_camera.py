@@ -28,18 +28,24 @@ def test_a_plain_camera_round_trips():
     ({"K": [[2 * MAX_MAGNITUDE, 0, 160], [0, 500, 120], [0, 0, 1]]}, "beyond"),
     ({"t": [0, float("nan"), 5]}, "non-finite"),
     ({"t": ["a", 0, 5]}, "non-numeric"),
+    ({"K": [[500, 0, 160], [5, 500, 120], [0, 0, 1]]}, r"\[0, fy, cy\]"),
+    ({"K": [[500, 0, 160], [0, 500, 120], [0, 0, 2]]}, r"\[0, 0, 1\]"),
 ])
 def test_numbers_no_projection_can_use_are_camera_errors(change, message):
     with pytest.raises(CameraError, match=message):
         Camera.from_dict({**BASE, **change})
 
 
-@pytest.mark.parametrize("text", ['{"width": ' + "9" * 5000 + "}", "[" * 100_000 + "]" * 100_000])
-def test_a_camera_file_that_json_cannot_hold_is_a_camera_error(tmp_path, text):
+@pytest.mark.parametrize("text,message", [('{"width": ' + "9" * 5000 + "}", "limit .* digits"),
+                                          ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+                                          ('{"K": ', "not valid JSON")])
+def test_a_camera_file_that_json_cannot_hold_is_a_camera_error_that_says_why(tmp_path, text, message):
     path = tmp_path / "cam.json"
     path.write_text(text)
-    with pytest.raises(CameraError, match="cannot be read"):
+    with pytest.raises(CameraError, match=message):
         Camera.load(path)
+    with pytest.raises(CameraError, match="init_camera .*" + message):
+        Camera.from_json(text, what="init_camera")
 
 
 def test_a_camera_for_another_aspect_ratio_is_refused_not_stretched():

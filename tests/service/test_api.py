@@ -13,6 +13,7 @@ import time
 import zlib
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 import trimesh
@@ -237,8 +238,10 @@ def test_bad_hints_and_unknown_model_are_refused_before_queueing(service, scene)
                         json.dumps(camera).replace(f'"width": {camera["width"]}', '"width": 1e999'),
                         json.dumps({**camera, "width": "9" * 5000}).replace('"' + "9" * 5000 + '"', "9" * 5000),
                         "[" * 100_000 + "]" * 100_000,
-                        json.dumps({**camera, "t": [0, 0, 1e300]})):
-            assert_problem(submit(c, png, init_camera=hostile), 422, "invalid-camera")
+                        json.dumps({**camera, "t": [0, 0, 1e300]}),
+                        json.dumps({**camera, "K": [[450.0, 0, 160], [5, 450.0, 120], [0, 0, 1]]})):
+            body = assert_problem(submit(c, png, init_camera=hostile), 422, "invalid-camera")
+            assert body["detail"].split(": ")[-1] not in ("ValueError", "RecursionError"), body["detail"]
         assert_problem(submit(c, png, bbox="1,2,3"), 422, "invalid-bbox")
         assert_problem(submit(c, png, options='{"loss": "nope"}'), 422, "invalid-options")
         assert_problem(submit(c, png, options='{"max_evaluations": 1}'), 422, "invalid-options")
@@ -296,6 +299,29 @@ def test_idempotency_key_returns_the_original_job(service, scene):
         assert first.json()["id"] == again.json()["id"]
         assert_problem(submit(c, png, headers={"Idempotency-Key": "claim-123"}), 409, "idempotency-key-reused")
         wait_for(c, first.json()["id"])
+        # The same request spelled another way is the same request: hints compare as parsed.
+        spaced = json.dumps(scene[2].to_dict(), indent=2) + "\n"
+        a = submit(c, png, model_id=" sedan ", init_camera=spaced, options='{"max_evaluations": 60}',
+                   headers={"Idempotency-Key": "claim-124"})
+        b = submit(c, png, start=scene[2], options='{"max_evaluations":60}', headers={"Idempotency-Key": "claim-124"})
+        assert a.status_code == b.status_code == 202 and a.json()["id"] == b.json()["id"]
+        job = wait_for(c, a.json()["id"])
+        assert job["model_id"] == "sedan"  # kept without the spaces
+        assert_problem(submit(c, png, start=scene[2], options='{"max_evaluations": 61}',
+                              headers={"Idempotency-Key": "claim-124"}), 409, "idempotency-key-reused")
+
+
+def test_a_field_sent_twice_is_refused(service, scene):
+    png = encode(scene[0])
+    camera = json.dumps(scene[2].to_dict())
+    with service.client() as c:
+        two_photos = c.post("/v1/registrations", data={"model_id": "sedan"},
+                            files=[("photo", ("a.png", png, "image/png")), ("photo", ("b.png", png, "image/png"))])
+        body = assert_problem(two_photos, 422, "duplicate-field")
+        assert "photo" in body["detail"]
+        two_cameras = c.post("/v1/registrations", data={"model_id": "sedan", "init_camera": [camera, camera]},
+                             files={"photo": ("a.png", png, "image/png")})
+        assert "init_camera" in assert_problem(two_cameras, 422, "duplicate-field")["detail"]
 
 
 def test_clients_see_only_their_own_jobs(service, scene):
@@ -318,6 +344,12 @@ def test_clients_see_only_their_own_jobs(service, scene):
         with service.client("admin") as admin:
             assert admin.get(f"/v1/registrations/{job_id}").status_code == 200
             assert admin.get("/admin").status_code == 200
+        # Basic auth is the admin pages' browser login; the API takes Bearer keys only.
+        basic = httpx.BasicAuth("claims-app", service.keys["default"])
+        assert_problem(anonymous.get(f"/v1/registrations/{job_id}", auth=basic), 401, "unauthorized")
+        admin_basic = httpx.BasicAuth("admin", service.keys["admin"])
+        assert_problem(anonymous.get("/v1/models", auth=admin_basic), 401, "unauthorized")
+        assert anonymous.get("/admin", auth=admin_basic).status_code == 200
         wait_for(a, job_id)
 
 

@@ -51,6 +51,11 @@ def test_the_launcher_restarts_its_redis_and_the_service_carries_on(tmp_path, sc
             raise AssertionError(f"redis was not restarted:\n{stack.log_tail()}")
         assert again_port == port  # the same URL for every client
         assert "redis-server exited" in stack.log.read_text()
+        # The queue's files (the jobs' hints) are this user's alone.
+        folder = tmp_path / "redis"
+        assert folder.stat().st_mode & 0o077 == 0
+        kept = [p for p in folder.rglob("*") if p.is_file()]
+        assert kept and all(p.stat().st_mode & 0o077 == 0 for p in kept), [oct(p.stat().st_mode) for p in kept]
         with stack.client() as c:
             deadline = time.monotonic() + 60
             while True:

@@ -59,7 +59,8 @@ class Camera:
         k, r, tt = K.tolist(), R.tolist(), t.tolist()
         if not all(math.isfinite(v) for row in k + r + [tt] for v in row):
             raise CameraError("camera holds non-finite numbers")
-        if k[0][0] <= 0 or k[1][1] <= 0 or abs(k[2][2] - 1.0) > 1e-9 or k[2][0] != 0 or k[2][1] != 0:
+        if (k[0][0] <= 0 or k[1][1] <= 0 or abs(k[2][2] - 1.0) > 1e-9 or k[1][0] != 0 or k[2][0] != 0
+                or k[2][1] != 0):
             raise CameraError("K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
         gram = max(abs(sum(a * b for a, b in zip(r[i], r[j], strict=True)) - (i == j))
                    for i in range(3) for j in range(i, 3))
@@ -161,17 +162,27 @@ class Camera:
         return cls(K, R, t, width, height)
 
     @classmethod
+    def from_json(cls, text: str | bytes, *, what: str = "camera JSON") -> Camera:
+        """A camera from JSON text; CameraError saying what is wrong (``what`` names the text)."""
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise CameraError(f"{what} is not valid JSON: {exc.msg} at line {exc.lineno}") from None
+        except RecursionError:  # 100 000 nested brackets
+            raise CameraError(f"{what} is nested too deeply to be a camera") from None
+        except ValueError as exc:  # a 5000-digit integer
+            reason = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+            raise CameraError(f"{what} cannot be read as a camera: {reason}") from None
+        return cls.from_dict(data)
+
+    @classmethod
     def load(cls, path: str | Path) -> Camera:
         """Read a camera JSON file; CameraError if it cannot be read or parsed."""
         try:
-            data = json.loads(Path(path).read_text())
+            text = Path(path).read_text()
         except OSError as exc:
             raise CameraError(f"cannot read camera file {path}: {exc.strerror}") from None
-        except json.JSONDecodeError as exc:
-            raise CameraError(f"camera file {path} is not valid JSON: {exc.msg} at line {exc.lineno}") from None
-        except (ValueError, RecursionError) as exc:  # a 5000-digit integer, 100 000 nested brackets
-            raise CameraError(f"camera file {path} cannot be read as a camera: {type(exc).__name__}") from None
-        return cls.from_dict(data)
+        return cls.from_json(text, what=f"camera file {path}")
 
 
 def look_at_camera(
@@ -203,3 +214,4 @@ def look_at_camera(
     eye = np.asarray(centre, np.float64) + distance * d
     K = np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
     return Camera(K, R, -R @ eye, width, height)
+

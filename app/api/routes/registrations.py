@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from typing import Annotated, Any, cast
 
-from fastapi import APIRouter, File, Form, Header, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, Header, Request, Response, UploadFile, status
 from fastapi.responses import JSONResponse
 from sqlalchemy.orm import Session
 
@@ -39,11 +39,21 @@ def _accepted(job: Registration) -> JSONResponse:
     return JSONResponse(body.model_dump(mode="json"), status_code=202, headers={"Location": body.links.self})
 
 
+async def _each_field_once(request: Request) -> None:
+    """422 for a form that sends a field twice (two photos, two cameras): which one the client
+    meant is not for the service to guess."""
+    form = await request.form()  # the form the endpoint's fields were read from (parsed once)
+    twice = sorted({name for name in form if len(form.getlist(name)) > 1})
+    if twice:
+        raise Problem(422, "duplicate-field", f"the form sends {', '.join(twice)} more than once")
+
+
 @router.post(
     "",
     status_code=status.HTTP_202_ACCEPTED,
     response_model=RegistrationAccepted,
     responses={code: _PROBLEM for code in (401, 409, 413, 415, 422, 503)},
+    dependencies=[Depends(_each_field_once)],
 )
 def submit(
     client: CurrentClient,
@@ -61,9 +71,11 @@ def submit(
     idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
 ) -> JSONResponse:
     """Queue a registration; answers 202 with the job's URL at once."""
-    check_model(model_id)
+    model_id = check_model(model_id)
     data = photo.file.read()
-    fingerprint = request_hash(data, model_id, init_camera, bbox, options)
+    checked = check_photo(data, settings)
+    hints = parse_hints(init_camera, bbox, options, checked)
+    fingerprint = request_hash(data, model_id, hints)
     if idempotency_key:
         existing = find_idempotent(session, client, idempotency_key, fingerprint)
         if existing is not None and existing.never_queued:
@@ -73,8 +85,6 @@ def submit(
             _enqueue(session, existing.id)
         if existing is not None:
             return _accepted(existing)
-    checked = check_photo(data, settings)
-    hints = parse_hints(init_camera, bbox, options, checked)
     job, created = create_job(session, get_storage(), client, model_id, checked, hints, idempotency_key, fingerprint)
     if created:
         _enqueue(session, job.id)
