@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vehicle_pose.geometry.camera import Camera
+
 
 class VehiclePoseError(Exception):
     """Base class of every error the engine raises on bad input."""
@@ -61,3 +66,16 @@ class RenderError(VehiclePoseError):
     """The OpenGL context could not be created or rendering failed."""
 
     code = "render-failed"
+
+
+class OutOfTime(VehiclePoseError):
+    """The registration reached its deadline and stopped; ``camera`` is the best pose it had
+    found by then (for the photo as given; None before the first stage ended) and ``stage``
+    the stage that found it."""
+
+    code = "timeout"
+
+    def __init__(self, message: str, camera: Camera | None = None, stage: str | None = None) -> None:
+        super().__init__(message)
+        self.camera = camera
+        self.stage = stage

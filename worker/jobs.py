@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from datetime import timedelta
 from types import TracebackType
+from typing import Any
 
 import cv2
 import numpy as np
@@ -35,7 +36,7 @@ from vehicle_pose import (
     VehiclePoseError,
     decode_photo,
 )
-from vehicle_pose.errors import RenderError
+from vehicle_pose.errors import OutOfTime, RenderError
 from vehicle_pose.photo import read_focal, resized
 from vehicle_pose.registration.identify import register_or_identify
 from vehicle_pose.render.overlay import draw_overlay, encode_image
@@ -69,12 +70,22 @@ def overlay_base(rgb: npt.NDArray[np.uint8], max_size: int = OVERLAY_MAX_SIZE) -
     return resized(rgb, max(1, round(w * s)), max(1, round(h * s)))
 
 
-def fail_job(job_id: str, error_type: str, detail: str) -> None:
-    """Record that a job ended in failure (unless it already ended)."""
+def fail_job(job_id: str, error_type: str, detail: str, result: dict[str, Any] | None = None) -> None:
+    """Record that a job ended in failure (unless it already ended), with what it found."""
     with session_scope() as s:
         job = s.get(Registration, job_id)
         if job is not None and not job.ended:
+            if result is not None:
+                job.result = result
             job.finish(JobStatus.failed, error_type, detail)
+
+
+def engine_deadline(started: float, settings: Settings) -> float:
+    """When the engine must stop (``time.monotonic()``): a little before the soft time limit
+    (a fifth of it, at most 5 s), so that it stops by itself and its best pose is kept; the
+    soft limit's signal stays the backstop."""
+    soft = float(settings.job_soft_time_limit_s)
+    return started + soft - min(5.0, 0.2 * soft)
 
 
 def _lease_lost(settings: Settings) -> ColumnElement[bool]:
@@ -192,7 +203,8 @@ class _Progress:
                 job.current_loss = float(loss) if np.isfinite(loss) else None
 
 
-def _register(job: Registration, storage: Storage, library: ModelLibrary, settings: Settings) -> None:
+def _register(job: Registration, storage: Storage, library: ModelLibrary, settings: Settings,
+              deadline: float | None = None) -> None:
     options = RegistrationOptions.from_flat(job.options)
     # A large JPEG is decoded reduced, to twice the working size at least; the registration
     # still answers in the photo's own pixels.
@@ -205,7 +217,7 @@ def _register(job: Registration, storage: Storage, library: ModelLibrary, settin
     progress = _Progress(job.id, settings.progress_interval_s)
     result, data = register_or_identify(photo, models, init_camera=init, bbox=job.bbox, options=options,
                                         progress=progress, photo_size=(job.photo_width, job.photo_height),
-                                        exif=exif)
+                                        exif=exif, deadline=deadline)
     model = result.model
     base = overlay_base(photo)
     del photo  # a large photo's array need not outlive the registration
@@ -251,6 +263,7 @@ def run_job(
     ``settings.max_attempts`` runs were made; ``timeouts`` are the exceptions that mean the
     soft time limit passed.
     """
+    started = time.monotonic()
     settings = settings or get_settings()
     storage = storage or get_storage()
     try:
@@ -261,8 +274,14 @@ def run_job(
         return "skipped"
     try:
         with _Heartbeat(job, settings.heartbeat_interval_s):
-            _register(job, storage, get_library(), settings)
+            _register(job, storage, get_library(), settings, engine_deadline(started, settings))
         return JobStatus.succeeded.value
+    except OutOfTime as exc:
+        # The engine stopped at its deadline: the best pose of the stages it finished is kept.
+        kept = None if exc.camera is None else {"camera": exc.camera.to_dict(), "pose_stage": exc.stage,
+                                                 "best_so_far": True}
+        fail_job(job_id, "timeout", f"the registration ran past its time limit of {settings.job_soft_time_limit_s} s"
+                 + ("; the best pose found by then is in result" if kept else ""), kept)
     except timeouts:
         fail_job(job_id, "timeout", f"the registration ran past {settings.job_soft_time_limit_s} s")
     except ObjectMissing:

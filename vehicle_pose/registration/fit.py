@@ -25,6 +25,7 @@ from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.loss.invariant import make_target
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.options import Pyramid, RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import box_mask, doubt_weights, first_foreground, resegment, silhouette
@@ -133,12 +134,13 @@ def fit(
     stage_prefix: str = "",
     *,
     box: Box | None = None,
+    deadline: Deadline | None = None,
 ) -> Fit:
     """Register from one start camera on ``work`` (already at working size).
 
     ``foreground`` (working size) replaces GrabCut. ``box`` (working-size pixels), the client's
     box of the vehicle, widens what GrabCut may call foreground beyond the grown start
-    silhouette, and adds the box term.
+    silhouette, and adds the box term. ``deadline`` is offered each level's pose.
     """
     Hf, Wf = work.shape[:2]
     start = start.scaled(Wf, Hf)
@@ -240,6 +242,8 @@ def fit(
             loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t,
                                   res.fun))
+        if deadline is not None:
+            deadline.offer(camera, "shading")
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
         if segment_again and li < len(sizes) - 1:

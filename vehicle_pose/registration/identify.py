@@ -68,6 +68,7 @@ def identify(
     progress: Callable[[str, int, float], None] | None = None,
     photo_size: tuple[int, int] | None = None,
     exif: ExifFocal | None = None,
+    deadline: float | None = None,
 ) -> list[Identification]:
     """Register every model and rank them, best first.
 
@@ -87,7 +88,7 @@ def identify(
 
         try:
             res = register(photo, model, init_camera=init_camera, bbox=bbox, options=options,
-                           renderer=renderer, progress=relay, photo_size=photo_size, exif=exif)
+                           renderer=renderer, progress=relay, photo_size=photo_size, exif=exif, deadline=deadline)
         except PoseError as exc:
             out.append(Identification(model, None, float("inf"), str(exc)))
             continue
@@ -106,17 +107,19 @@ def register_or_identify(
     progress: Callable[[str, int, float], None] | None = None,
     photo_size: tuple[int, int] | None = None,
     exif: ExifFocal | None = None,
+    deadline: float | None = None,
 ) -> tuple[RegistrationResult, dict[str, Any]]:
     """Register the one model given, or identify the model among several: the winning
     registration and its JSON result (with the ranking under ``identification`` when several
     models were tried). PoseError when no candidate could be registered. ``photo_size`` as
-    and ``exif`` as for :func:`~vehicle_pose.registration.register.register`."""
+    ``exif`` and ``deadline`` as for :func:`~vehicle_pose.registration.register.register`."""
     if len(models) == 1:
         result = register(photo, models[0], init_camera=init_camera, bbox=bbox, options=options,
-                          renderer=renderer, progress=progress, photo_size=photo_size, exif=exif)
+                          renderer=renderer, progress=progress, photo_size=photo_size, exif=exif,
+                          deadline=deadline)
         return result, result.to_dict()
     ranking = identify(photo, models, init_camera=init_camera, bbox=bbox, options=options,
-                       renderer=renderer, progress=progress, photo_size=photo_size, exif=exif)
+                       renderer=renderer, progress=progress, photo_size=photo_size, exif=exif, deadline=deadline)
     best = ranking[0].result
     if best is None:
         raise PoseError(f"no candidate model could be registered: {ranking[0].error}")

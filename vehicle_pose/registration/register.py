@@ -19,6 +19,7 @@ from vehicle_pose.geometry.pose import camera_to_theta, visible_side
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import ExifFocal, resized, resized_mask
 from vehicle_pose.registration.credibility import confidence, fit_checks, loss_share
+from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
 from vehicle_pose.registration.hypotheses import photo_pose
 from vehicle_pose.registration.nohint import search
@@ -74,6 +75,7 @@ def register(
     foreground: npt.NDArray[np.bool_] | None = None,
     photo_size: tuple[int, int] | None = None,
     exif: ExifFocal | None = None,
+    deadline: float | None = None,
 ) -> RegistrationResult:
     """Find the camera that makes the model coincide with the vehicle in the photo.
 
@@ -109,6 +111,9 @@ def register(
         Without a start camera (whose focal length wins), the view-sphere search starts from it
         and keeps within ``options.search.exif_tolerance`` of it; the result's ``focal`` says
         where its focal length came from, and its ``warnings`` repeat the EXIF's.
+    deadline : float, optional, keyword-only
+        The moment (``time.monotonic()`` seconds) the registration must end by: checked before
+        every loss evaluation (:mod:`~vehicle_pose.registration.deadline`).
 
     Raises
     ------
@@ -120,6 +125,8 @@ def register(
         The start camera or box is malformed, or the camera is for a picture of another shape.
     PoseError
         The start pose puts the model behind the camera or off-screen.
+    OutOfTime
+        The deadline passed; it carries the best pose the finished stages had found.
     """
     t_start = time.perf_counter()
     _check_photo(photo)
@@ -132,6 +139,12 @@ def register(
         init_camera.for_photo(W0, H0)  # a camera of another picture fails here, not stretched
     renderer = renderer if renderer is not None else Renderer()
     optimizer = optimizer if optimizer is not None else make_optimizer(options.optimizer)
+    watch = None
+    if deadline is not None:
+        watch = Deadline(deadline, (W0, H0))
+        optimizer = watch.guard(optimizer)
+        progress = _checking(progress, watch)
+        watch.check()
 
     s = min(1.0, options.pyramid.max_size / max(W0, H0))
     Wf, Hf = max(8, round(W0 * s)), max(8, round(H0 * s))
@@ -152,7 +165,7 @@ def register(
         options = options.replace(edge_weight=0.0)
         band = lens.band(options)
         found, swept, stage = sphere_pose(work, model, options, renderer, optimizer, box=rect, foreground=fg,
-                                          progress=progress, focal_band=band)
+                                          progress=progress, focal_band=band, deadline=watch)
         timings["sphere"] = swept.seconds
         levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
         checks = (swept.checks | fit_checks(work, model, found, None, options.color, renderer)
@@ -166,7 +179,8 @@ def register(
         source, method = "init_camera", "given"
         timings["start"] = 0.0
         start = _given_start(work, model, init_camera, rect, options)
-        found = fit(work, model, start, options, FitPlan.hinted(options), renderer, optimizer, progress, fg, box=rect)
+        found = fit(work, model, start, options, FitPlan.hinted(options), renderer, optimizer, progress, fg, box=rect,
+                    deadline=watch)
         spent, grabcut_seconds = [found], found.grabcut_seconds
         st = options.structure
         if st.structure and loss_share(found.loss, work, options.color) > st.shading_trust:
@@ -198,6 +212,8 @@ def register(
         options = options.replace(edge_weight=0.0)
         searched = search(work, model, rect, fg, options, renderer, optimizer, progress)
         found, levels, checks, listed = searched.fit, searched.levels, searched.checks, searched.listed
+        if watch is not None:
+            watch.offer(found.camera, "shading")
         start, method = searched.candidate.camera, searched.candidate.source
         spent, grabcut_seconds = searched.spent, searched.grabcut_seconds
         timings.update(searched.timings)
@@ -217,6 +233,17 @@ def register(
     timings["grabcut"] = grabcut_seconds
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
                    W0, H0, t_start, stage, renderer, lens)
+
+
+def _checking(progress: Progress | None, watch: Deadline) -> Progress:
+    """``progress`` that checks the deadline first (stages report between their searches too)."""
+
+    def report(stage: str, evaluations: int, loss: float) -> None:
+        watch.check()
+        if progress is not None:
+            progress(stage, evaluations, loss)
+
+    return report
 
 
 class Lens:

@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -36,6 +37,7 @@ from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized
 from vehicle_pose.registration.credibility import loss_share
+from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
@@ -146,11 +148,12 @@ class Target:
     mask: npt.NDArray[np.bool_]
 
 
-def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | None, box: Box | None) -> list[Target]:
+def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | None, box: Box | None,
+             between: Callable[[], None] | None = None) -> list[Target]:
     """The boxes the vehicle is looked for in: the client's box (the vehicle segmented in it by
     GrabCut); else the photo's frame (a claims photo is mostly the car), with a start camera the
     box of its projection first, and the regions GrabCut finds from rectangles 8-30 % inside the
-    border (one box each, those that differ)."""
+    border (one box each, those that differ). ``between`` is called before each GrabCut."""
     H, W = work.shape[:2]
     if box is not None:
         return [Target(box, find_vehicle(work, rect=box).mask)]
@@ -162,6 +165,8 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
         if _box_iou(b, out[0].box) < 0.8:
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
     for border in REGION_BORDERS:
+        if between is not None:
+            between()
         region = find_vehicle(work, border=border)
         if all(_box_iou(region.box, o.box) < 0.8 for o in out):
             out.append(Target(region.box, region.mask))
@@ -281,7 +286,10 @@ def sphere_search(
     t0 = time.perf_counter()
     search = options.search
     Hf, Wf = work.shape[:2]
-    targets = _targets(work, model, init, box)
+    tick = None if progress is None else lambda: progress("view sphere: finding the vehicle", 0, float("nan"))
+    if tick is not None:
+        tick()
+    targets = _targets(work, model, init, box, tick)
     w, h = _search_size(work, options)
     sx, sy = w / Wf, h / Hf
     image = resized(work, w, h)
@@ -296,16 +304,20 @@ def sphere_search(
         progress("view sphere: placing templates", 0, float("nan"))
     allowed = _allowed(templates, init, search.sphere_spread)
     placed = match(templates, first.chamfer.edges.distance, first.chamfer.tau, small, allowed=allowed,
-                   scales=search.sphere_scales, min_iou=search.sphere_iou, stride=search.sphere_stride)
+                   scales=search.sphere_scales, min_iou=search.sphere_iou, stride=search.sphere_stride,
+                   between=None if progress is None else lambda: progress("view sphere: placing templates", 0,
+                                                                          float("nan")))
     principal = (0.5 * (w - 1), 0.5 * (h - 1)) if init is None else tuple(init.scaled(w, h).K[:2, 2])
     pivot = options.probes.dolly_pivot * model.mesh.sphere[1]
     lens = None if focal_band is None else float(np.sqrt(focal_band[0] * focal_band[1]))
     ranked: list[Pose] = []
     for k in range(len(small)):
         order = np.argsort(placed.cost[:, k])
-        for t in order[: search.sphere_rank]:
+        for i, t in enumerate(order[: search.sphere_rank]):
             if not np.isfinite(placed.cost[t, k]):
                 break
+            if progress is not None and i % 16 == 0:
+                progress(f"view sphere: ranking target {k + 1}/{len(small)}", len(ranked), float("nan"))
             cam = templates.camera(int(t), placed.focal[t, k], placed.u[t, k], placed.v[t, k], principal, w, h)
             full = cam.scaled(Wf, Hf)
             if lens is not None:
@@ -369,7 +381,8 @@ def sphere_fit(work: npt.NDArray[np.uint8], model: VehicleModel, searched: Spher
 def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: RegistrationOptions, renderer: Renderer,
                 optimizer: Optimizer, *, init: Camera | None = None, box: Box | None = None,
                 foreground: npt.NDArray[np.bool_] | None = None, progress: Progress | None = None,
-                focal_band: tuple[float, float] | None = None) -> tuple[Fit, SphereSearch, str]:
+                focal_band: tuple[float, float] | None = None,
+                deadline: Deadline | None = None) -> tuple[Fit, SphereSearch, str]:
     """The search's pose, polished by the shading fit where the shading may explain the photo.
 
     The search's pose is segmented and scored by the named loss (:func:`sphere_fit`); where
@@ -379,10 +392,13 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     edges); else the search's pose stands. Returns the fit, the search and which stage's pose
     it is (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the
     shading fit searches the focal length within it (where the shading explains the photo, it
-    tells the focal length more precisely than a rounded EXIF).
+    tells the focal length more precisely than a rounded EXIF). ``deadline`` is offered the
+    search's pose before the polish.
     """
     searched = sphere_search(work, model, model.templates(renderer), options, renderer, optimizer, init=init,
                              box=box, progress=progress, focal_band=focal_band)
+    if deadline is not None:
+        deadline.offer(searched.best.camera, "structure")
     st = options.structure
     # Each refined pose scored by the named loss on its target's segmentation: where one is
     # explained by the shading (its loss over its maximum at most shading_polish), the shading
@@ -396,6 +412,7 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         plan = FitPlan(options.pyramid.coarse_to_fine, st.polish_evaluations,
                        options.segmentation.grabcut and options.segmentation.resegment, options.terms.edge_weight,
                        focal_band=focal_band)
+        # The polish's levels are not offered to the deadline: its pose stands only if credible.
         polished = fit(work, model, bests[k].camera, options, plan, renderer, optimizer, progress, foreground,
                        box=box)
         if loss_share(polished.loss, work, options.color) <= st.shading_trust:

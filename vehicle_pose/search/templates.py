@@ -30,6 +30,7 @@ orientation). Here:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -345,7 +346,8 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
 def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: float, targets: list[Box], *,
           allowed: npt.NDArray[np.bool_] | None = None, scales: tuple[float, float] = (0.8, 2.0),
           scale_step: float = 1.1, step: float = 0.04, min_iou: float = 0.6, min_seen: float = 0.5,
-          principal: tuple[float, float] | None = None, stride: int = 1) -> Placements:
+          principal: tuple[float, float] | None = None, stride: int = 1,
+          between: Callable[[], None] | None = None) -> Placements:
     """Every allowed template's best placement about each target box.
 
     Parameters
@@ -375,6 +377,9 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
     stride : int, keyword-only
         The positions are first tried every ``stride`` steps, then the best of them again
         one step either way (1: every step).
+    between : callable, keyword-only
+        Called after each target's placements (the targets are then placed one at a time, with
+        the same results): a caller's deadline can stop the match between targets.
     """
     if not targets:
         raise ValueError("matching needs at least one target box")
@@ -384,8 +389,19 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
     mask = np.ones(len(templates), np.bool_) if allowed is None else np.asarray(allowed, np.bool_)
     _, H, W = distance.shape
     cx, cy = principal if principal is not None else (0.5 * (W - 1), 0.5 * (H - 1))
-    best, where = _match(templates.points, templates.bins, templates.offsets, templates.boxes, mask, costs,
-                         float(min_seen),
-                         np.asarray(targets, np.float64), factors.astype(np.float64), float(step), float(min_iou),
-                         float(cx), float(cy), float(stride))
+    boxes = np.asarray(targets, np.float64)
+
+    def place(chosen: npt.NDArray[np.float64]) -> tuple[Any, Any]:
+        return _match(templates.points, templates.bins, templates.offsets, templates.boxes, mask, costs,
+                      float(min_seen), chosen, factors.astype(np.float64), float(step), float(min_iou),
+                      float(cx), float(cy), float(stride))
+
+    if between is None:
+        best, where = place(boxes)
+    else:
+        done = []
+        for k in range(len(boxes)):
+            done.append(place(boxes[k:k + 1]))
+            between()
+        best, where = np.concatenate([d[0] for d in done], axis=1), np.concatenate([d[1] for d in done], axis=1)
     return Placements(best, where[..., 0], where[..., 1], where[..., 2])
