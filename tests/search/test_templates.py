@@ -67,6 +67,19 @@ def test_the_true_view_matches_best_at_its_place_and_scale(sedan, renderer, temp
     assert placed.cost[best, 0] < 0.8 * min(placed.cost[3, 0], placed.cost[5, 0])
 
 
+def test_targets_placed_one_at_a_time_give_the_same_placements(sedan, renderer, templates):
+    """With ``between`` (a deadline's check), each target is placed on its own: same arrays."""
+    photo, _ = _photo(sedan, renderer, 4, templates, 260.0, 170.0, 125.0)
+    edges = photo_edges(photo)
+    targets = [(0.0, 0.0, 319.0, 239.0), (60.0, 50.0, 280.0, 200.0), (100.0, 70.0, 240.0, 180.0)]
+    together = match(templates, edges.distance, 16.0, targets)
+    calls: list[int] = []
+    apart = match(templates, edges.distance, 16.0, targets, between=lambda: calls.append(1))
+    assert len(calls) == len(targets)
+    for name in ("cost", "focal", "u", "v"):
+        np.testing.assert_array_equal(getattr(together, name), getattr(apart, name))
+
+
 def test_a_car_cut_by_the_frame_is_a_template_cut_by_the_frame(sedan, renderer, templates):
     """About a third of the car is beyond the left border: the template placed there, scored on
     its points inside, still wins, at the car's true scale (not shrunk into the frame)."""
