@@ -8,11 +8,19 @@ hard limit so a running job is never handed to a second worker.
 
 from __future__ import annotations
 
+import threading
+import time
 from functools import lru_cache
+from typing import Any
 
 from celery import Celery
 
 from core.config import Settings, get_settings
+
+# Connections the API may hold to the broker at once: above its 40 request threads, so that no
+# request waits for another's connection (a frozen broker then answers every waiting request
+# after one socket timeout, not in waves of ten, Celery's default).
+BROKER_POOL_LIMIT = 64
 
 QUEUE = "registrations"
 TASK = "worker.tasks.register_job"
@@ -40,6 +48,7 @@ def make_celery(settings: Settings) -> Celery:
             "socket_connect_timeout": settings.broker_timeout_s,
         },
         broker_connection_timeout=settings.broker_timeout_s,
+        broker_pool_limit=BROKER_POOL_LIMIT,
         broker_connection_retry_on_startup=True,
         task_default_queue=QUEUE,
         task_routes={TASK: {"queue": QUEUE}, PREPARE_TASK: {"queue": QUEUE}},
@@ -58,3 +67,43 @@ def get_celery() -> Celery:
     """The process's Celery application, made on first use (the API sends tasks by name; the
     worker's tasks are shared tasks, bound to it when the worker asks for ``worker.app``)."""
     return make_celery(get_settings())
+
+
+class BrokerDown(Exception):
+    """The broker is taken for down: a send failed less than the breaker's cool-down ago."""
+
+
+class Breaker:
+    """Sends to the broker, failing fast while it is known to be down.
+
+    After a send fails, every send for the next ``cool_s`` seconds fails at once
+    (:class:`BrokerDown`) without touching the broker, so a frozen or lost broker costs one
+    socket timeout, not one per request, and holds no thread; then one send at a time tries the
+    broker again (the others still fail fast) until one gets through."""
+
+    def __init__(self, cool_s: float) -> None:
+        self.cool_s = cool_s
+        self._lock = threading.Lock()
+        self._failed_at: float | None = None
+        self._probing = False
+
+    def send(self, app: Celery, name: str, **kwargs: Any) -> None:
+        with self._lock:
+            if self._failed_at is not None:
+                if self._probing or time.monotonic() - self._failed_at < self.cool_s:
+                    raise BrokerDown(f"the broker failed {time.monotonic() - self._failed_at:.1f} s ago")
+                self._probing = True
+        try:
+            app.send_task(name, retry=False, **kwargs)
+        except Exception:
+            with self._lock:
+                self._failed_at, self._probing = time.monotonic(), False
+            raise
+        with self._lock:
+            self._failed_at, self._probing = None, False
+
+
+@lru_cache
+def get_breaker() -> Breaker:
+    """The process's breaker in front of the broker (cool-down: one broker socket timeout)."""
+    return Breaker(get_settings().broker_timeout_s)

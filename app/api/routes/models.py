@@ -42,10 +42,10 @@ def _out(info: ModelInfo) -> ModelOut:
 
 def _prepare_soon(model_id: str) -> None:
     """Ask a worker to prepare the new model's levels now rather than at its first job."""
-    from core.queue import PREPARE_TASK, get_celery
+    from core.queue import PREPARE_TASK, get_breaker, get_celery
 
     try:
-        get_celery().send_task(PREPARE_TASK, args=[model_id], retry=False)
+        get_breaker().send(get_celery(), PREPARE_TASK, args=[model_id])
     except Exception as exc:  # kombu raises many connection error types; the model works regardless
         log.warning("cannot ask a worker to prepare model %s: %s", model_id, exc)
 
