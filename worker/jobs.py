@@ -181,6 +181,36 @@ def reap_stale_jobs(settings: Settings, send: Callable[[str], object], limit: in
     return reaped
 
 
+def resend_handed_back(send: Callable[[str], object], limit: int = 1000) -> list[str]:
+    """Send again, oldest first, the jobs handed back to the queue (``queued``, stage
+    ``retrying``: cut off by a stop, a lost worker, a restart), marking each ``sent again`` in
+    one conditional update, so that of several workers starting together one sends it; returns
+    their ids.
+
+    A job handed back has a message in the broker only if the broker kept it: an unacknowledged
+    message comes back only after the visibility timeout (600 s), and a Redis killed and
+    restarted loses its last second. Each worker's main process runs this as it starts
+    (``worker.tasks``). A message that does come back later finds the job ended or running and
+    is ignored."""
+    with session_scope() as s:
+        back = list(s.scalars(select(Registration.id)
+                              .where(Registration.status == JobStatus.queued.value, Registration.stage == "retrying")
+                              .order_by(Registration.created_at).limit(limit)))
+    sent = []
+    for job_id in back:
+        with session_scope() as s:
+            taken = updated_rows(s, update(Registration)
+                                 .where(Registration.id == job_id, Registration.status == JobStatus.queued.value,
+                                        Registration.stage == "retrying")
+                                 .values(stage="sent again"))
+        if taken:
+            send(job_id)
+            sent.append(job_id)
+    if sent:
+        log.warning("%d job(s) handed back to the queue sent again: %s", len(sent), ", ".join(sent))
+    return sent
+
+
 class _Progress:
     """Writes (stage, evaluations, loss) to the job's record at most every ``interval`` seconds."""
 

@@ -15,7 +15,7 @@ from celery.signals import worker_init, worker_process_init, worker_ready, worke
 from core.config import get_settings
 from core.db import get_engine
 from core.queue import PREPARE_TASK, TASK
-from worker.jobs import Retry, fail_job, reap_stale_jobs, requeue, run_job
+from worker.jobs import Retry, fail_job, reap_stale_jobs, requeue, resend_handed_back, run_job
 
 log = logging.getLogger(__name__)
 
@@ -38,11 +38,16 @@ _reaper_stop = threading.Event()
 
 @worker_ready.connect
 def start_lease_reaper(sender: Any = None, **_: object) -> None:
-    """In the worker's main process: every third of ``lease_s``, send again the running jobs
+    """In the worker's main process: send again the jobs handed back to the queue
+    (:func:`worker.jobs.resend_handed_back`), then every third of ``lease_s`` the running jobs
     whose worker stopped renewing its lease (:func:`worker.jobs.reap_stale_jobs`)."""
     if sender is None:
         return
     settings, app = get_settings(), sender.app
+    try:
+        resend_handed_back(lambda job_id: app.send_task(TASK, args=[job_id], task_id=job_id))
+    except Exception as exc:  # database or broker away: their messages come back in time anyway
+        log.warning("cannot send the handed-back jobs again: %s: %s", type(exc).__name__, exc)
 
     def loop() -> None:
         while not _reaper_stop.wait(settings.lease_s / 3.0):

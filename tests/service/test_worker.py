@@ -123,6 +123,21 @@ def test_reap_stale_jobs_sends_back_only_the_jobs_whose_lease_ran_out(service_db
     assert reap_stale_jobs(config.get_settings(), sent.append) == [] and len(sent) == 2
 
 
+def test_jobs_handed_back_are_sent_again_once_oldest_first(service_db, small_photo):
+    from worker.jobs import resend_handed_back
+
+    client_id, store = service_db
+    first = _job(client_id, store, small_photo[0], stage="retrying", attempts=1)
+    second = _job(client_id, store, small_photo[0], stage="retrying", attempts=1)
+    waiting = _job(client_id, store, small_photo[0])
+    running = _job(client_id, store, small_photo[0], status=JobStatus.running.value, stage="retrying", attempts=1)
+    sent: list[str] = []
+    assert resend_handed_back(sent.append) == sent == [first, second]
+    assert all(_record(j).stage == "sent again" and _record(j).status == "queued" for j in (first, second))
+    assert _record(waiting).stage != "sent again" and _record(running).status == "running"
+    assert resend_handed_back(sent.append) == [] and len(sent) == 2  # another worker starting sends nothing
+
+
 def test_the_heartbeat_renews_the_lease_while_the_job_runs(service_db, small_photo):
     from worker.jobs import _Heartbeat
 
