@@ -91,7 +91,7 @@ def create_app() -> FastAPI:
             return settings.max_upload_bytes
         return None
 
-    app.add_middleware(BodySizeLimit, limit_for=limit_for)
+    app.add_middleware(BodySizeLimit, limit_for=limit_for, timeout_s=settings.body_timeout_s)
     app.add_middleware(RequestMetrics)
     app.add_middleware(SecurityHeaders)
     return app

@@ -53,6 +53,7 @@ _SLUGS = {
     404: "not-found",
     405: "method-not-allowed",
     406: "not-acceptable",
+    408: "request-timeout",
     413: "content-too-large",
     415: "unsupported-media-type",
     422: "validation-error",

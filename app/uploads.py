@@ -1,7 +1,9 @@
-"""Upload safety: a body size limit enforced while the bytes stream in, and content sniffing."""
+"""Upload safety: a body size limit enforced while the bytes stream in, a deadline for the body
+to arrive, and content sniffing."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Callable
 
 from starlette.exceptions import HTTPException
@@ -32,16 +34,21 @@ def sniff_image(head: bytes) -> str | None:
 
 
 class BodySizeLimit:
-    """Refuse request bodies over a limit with 413, before or while they are received.
+    """Refuse request bodies over a limit with 413, before or while they are received, and
+    bodies that do not arrive in time with 408.
 
     A declared ``Content-Length`` over the limit is refused before reading anything; a body
     without one (chunked) is counted as it arrives and refused once it passes the limit, so no
-    more than the limit is ever read or written to disk.
+    more than the limit is ever read or written to disk. A body must have arrived whole within
+    ``timeout_s`` of the request's start: a client that sends half a body and stops (or sends a
+    byte now and then) is answered 408 and its connection closed, instead of holding a
+    connection and an upload's buffers open without end.
     """
 
-    def __init__(self, app: ASGIApp, limit_for: Callable[[str], int | None]) -> None:
+    def __init__(self, app: ASGIApp, limit_for: Callable[[str], int | None], timeout_s: float = 60.0) -> None:
         self.app = app
         self.limit_for = limit_for
+        self.timeout_s = timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
@@ -56,14 +63,24 @@ class BodySizeLimit:
             await _too_large(scope, receive, send, limit)
             return
         received = 0
+        whole = False
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.timeout_s
 
         async def limited_receive() -> Message:
-            nonlocal received
-            message = await receive()
+            nonlocal received, whole
+            if whole:
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), timeout=max(deadline - loop.time(), 0.0))
+            except TimeoutError:
+                # An HTTPException passes through FastAPI's body parsing unchanged (it wraps others as 400).
+                raise HTTPException(408, f"the request body did not arrive within {self.timeout_s:g} s",
+                                    headers={"Connection": "close"}) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
+                whole = not message.get("more_body", False)
                 if received > limit:
-                    # An HTTPException passes through FastAPI's body parsing unchanged (it wraps others as 400).
                     raise HTTPException(413, f"the request body exceeds {limit} bytes")
             return message
 

@@ -35,6 +35,7 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(default=25 * 1024 * 1024, gt=0)
     max_photo_pixels: int = Field(default=50_000_000, gt=0)
     max_mesh_bytes: int = Field(default=200 * 1024 * 1024, gt=0)
+    body_timeout_s: float = Field(default=60.0, gt=0.0)
     job_soft_time_limit_s: int = Field(default=240, gt=0)
     job_hard_time_limit_s: int = Field(default=300, gt=0)
     visibility_timeout_s: int = Field(default=600, gt=0)

@@ -194,6 +194,39 @@ def _raw_post_head(url: str, path: str, length: int) -> bytes:
     return answer
 
 
+def test_half_sent_bodies_are_answered_408_and_closed_in_time(tmp_path):
+    """Ten clients send the headers and half a body, then nothing: each is answered 408 and its
+    connection closed once the body deadline (2 s here) passes, and the API keeps answering."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service_stack import start_stack
+
+    stack = start_stack(tmp_path, workers=1, extra_env={"VP_BODY_TIMEOUT_S": "2"})
+    host, port = stack.url.removeprefix("http://").split(":")
+    key = stack.keys["default"]
+
+    def stall() -> tuple[bytes, float]:
+        with socket.create_connection((host, int(port)), timeout=20) as sock:
+            started = time.monotonic()
+            sock.sendall(f"POST /v1/registrations HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {key}\r\n"
+                         "Content-Type: multipart/form-data; boundary=b\r\nContent-Length: 100000\r\n\r\n"
+                         .encode() + b"--b\r\n" + b"x" * 500)
+            answer = b""
+            while chunk := sock.recv(65536):  # until the service closes the connection
+                answer += chunk
+            return answer, time.monotonic() - started
+
+    try:
+        with ThreadPoolExecutor(10) as pool:
+            answers = [f.result() for f in [pool.submit(stall) for _ in range(10)]]
+        for answer, seconds in answers:
+            assert answer.startswith(b"HTTP/1.1 408"), answer[:200]
+            assert b"/problems/request-timeout" in answer and seconds < 6.0
+        assert httpx.get(f"{stack.url}/healthz", timeout=5).status_code == 200
+    finally:
+        stack.stop()
+
+
 def test_unusual_photos_are_accepted_and_registered(service, sedan, renderer):
     truth = view(sedan, 110.0, 15.0, width=320, height=240, focal=480.0)
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=9)
