@@ -24,7 +24,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from core.config import get_settings
 from core.db import session_scope
 from core.models import JobStatus, Registration
-from core.queue import QUEUE
+from core.queue import PRIORITY_LISTS
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ def queue_depth() -> int | None:
     try:
         client = redis.Redis.from_url(get_settings().broker_url, socket_timeout=1.0)
         try:
-            return int(client.llen(QUEUE))
+            return sum(int(client.llen(key)) for key in PRIORITY_LISTS)
         finally:
             client.close()
     except redis.RedisError as exc:

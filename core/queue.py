@@ -23,6 +23,15 @@ from core.config import Settings, get_settings
 BROKER_POOL_LIMIT = 64
 
 QUEUE = "registrations"
+
+# Message priorities (on Redis the lower number is served first: kombu pops its priority lists
+# 0, 3, 6, 9 in that order). A job is sent at PRIORITY_NEW; a job sent again (handed back at a
+# stop, taken back from a lost worker) at PRIORITY_AGAIN, so it keeps its place ahead of the
+# jobs queued after it.
+PRIORITY_AGAIN = 0
+PRIORITY_NEW = 3
+PRIORITY_LISTS = tuple(f"{QUEUE}\x06\x16{p}" if p else QUEUE for p in (0, 3, 6, 9))
+"""The Redis lists of the queue, one per priority step (kombu's key for each)."""
 TASK = "worker.tasks.register_job"
 PREPARE_TASK = "worker.tasks.prepare_model"
 

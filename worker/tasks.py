@@ -14,7 +14,7 @@ from celery.signals import worker_init, worker_process_init, worker_ready, worke
 
 from core.config import get_settings
 from core.db import get_engine
-from core.queue import PREPARE_TASK, TASK
+from core.queue import PREPARE_TASK, PRIORITY_AGAIN, TASK
 from worker.jobs import Retry, fail_job, reap_stale_jobs, requeue, resend_handed_back, run_job
 
 log = logging.getLogger(__name__)
@@ -45,14 +45,14 @@ def start_lease_reaper(sender: Any = None, **_: object) -> None:
         return
     settings, app = get_settings(), sender.app
     try:
-        resend_handed_back(lambda job_id: app.send_task(TASK, args=[job_id], task_id=job_id))
+        resend_handed_back(lambda job_id: app.send_task(TASK, args=[job_id], task_id=job_id, priority=PRIORITY_AGAIN))
     except Exception as exc:  # database or broker away: their messages come back in time anyway
         log.warning("cannot send the handed-back jobs again: %s: %s", type(exc).__name__, exc)
 
     def loop() -> None:
         while not _reaper_stop.wait(settings.lease_s / 3.0):
             try:
-                reap_stale_jobs(settings, lambda job_id: app.send_task(TASK, args=[job_id]))
+                reap_stale_jobs(settings, lambda job_id: app.send_task(TASK, args=[job_id], priority=PRIORITY_AGAIN))
             except Exception as exc:  # database or broker away: the next round tries again
                 log.warning("lease reaper: %s: %s", type(exc).__name__, exc)
 

@@ -115,6 +115,31 @@ def test_a_stop_hands_running_jobs_back_and_they_run_after_the_restart(tmp_path,
         stack.stop()
 
 
+def test_a_job_handed_back_runs_before_the_jobs_queued_after_it(tmp_path, scene):
+    """One worker: a long job runs, three more wait behind it; the service stops and hands the
+    long job back. After the restart it runs first, not after the jobs queued behind it."""
+    stack = start_stack(tmp_path, workers=1, drain=1.0)
+    try:
+        with stack.client() as c:
+            first = _long_job_running(c, scene, 1.0)
+            quick = json.dumps({"max_evaluations": 40})
+            behind = [submit(c, encode(scene[0]), start=scene[2], options=quick).json()["id"] for _ in range(3)]
+    finally:
+        stack.stop()
+    assert _status(tmp_path, first) == ("queued", 1)
+    assert all(_status(tmp_path, job_id)[0] == "queued" for job_id in behind)
+    stack = start_stack(tmp_path, workers=1)
+    try:
+        with stack.client() as c:
+            bodies = {job_id: wait_for(c, job_id, timeout=240) for job_id in [first, *behind]}
+        assert all(b["status"] == "succeeded" for b in bodies.values()), bodies
+        assert bodies[first]["attempts"] == 2
+        started = {job_id: b["started_at"] for job_id, b in bodies.items()}
+        assert started[first] < min(started[j] for j in behind), started
+    finally:
+        stack.stop()
+
+
 def test_a_whole_worker_killed_mid_job_is_taken_back_within_its_lease(tmp_path, scene):
     """The worker's main process and its pool die together (a lost container or machine): the
     job's message stays unacknowledged until the broker's visibility timeout (600 s), but its

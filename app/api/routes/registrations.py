@@ -25,7 +25,7 @@ from app.registrations import (
 )
 from app.schemas import RegistrationAccepted, RegistrationOut, Status
 from core.models import JobStatus, Registration
-from core.queue import TASK, get_breaker, get_celery
+from core.queue import PRIORITY_NEW, TASK, get_breaker, get_celery
 from core.storage import get_storage
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,7 @@ def _enqueue(session: Session, job_id: str) -> None:
         # No publish retries: the broker's socket timeouts bound the wait, and the client is told
         # to try again (a retry with the same Idempotency-Key queues this same job); while the
         # broker is known to be down, the breaker answers at once.
-        get_breaker().send(get_celery(), TASK, args=[job_id], task_id=job_id)
+        get_breaker().send(get_celery(), TASK, args=[job_id], task_id=job_id, priority=PRIORITY_NEW)
     except Exception as exc:  # kombu raises many connection error types; BrokerDown
         log.error("cannot queue job %s: %s", job_id, exc)
         job = session.get(Registration, job_id)
