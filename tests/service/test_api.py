@@ -454,9 +454,12 @@ def test_a_job_past_its_time_limit_stops_by_itself_and_keeps_its_best_pose(tmp_p
 
     from service_stack import start_stack
 
-    # CMA-ES with this budget spends 2-5 s on the first level (160 px) and 8-17 s on the next
-    # ones on the 2-core VM: the deadline (6.4 s) falls after the first level's pose is kept.
-    limits = {"VP_JOB_SOFT_TIME_LIMIT_S": "8", "VP_JOB_HARD_TIME_LIMIT_S": "60", "VP_VISIBILITY_TIMEOUT_S": "120"}
+    # CMA-ES with this budget spends 2-8 s on the first level (160 px; its evaluations vary from
+    # run to run) and 10-20 s on the next ones on the 2-core VM: the deadline (9.6 s) falls
+    # after the first level's pose is kept and well before the job would end.
+    soft = 12
+    limits = {"VP_JOB_SOFT_TIME_LIMIT_S": str(soft), "VP_JOB_HARD_TIME_LIMIT_S": "60",
+              "VP_VISIBILITY_TIMEOUT_S": "120"}
     stack = start_stack(tmp_path, workers=1, extra_env=limits)
     try:
         with stack.client() as c:
@@ -464,10 +467,10 @@ def test_a_job_past_its_time_limit_stops_by_itself_and_keeps_its_best_pose(tmp_p
             job_id = submit(c, encode(scene[0]), start=scene[2], options=options).json()["id"]
             body = wait_for(c, job_id, timeout=60)
             assert body["status"] == "failed", body
-            assert body["error"]["type"] == "/problems/timeout" and "8 s" in body["error"]["detail"]
+            assert body["error"]["type"] == "/problems/timeout" and f"{soft} s" in body["error"]["detail"]
             assert "best pose" in body["error"]["detail"]
             ran = datetime.fromisoformat(body["finished_at"]) - datetime.fromisoformat(body["started_at"])
-            assert ran.total_seconds() < 8.0, ran  # stopped by itself: before the soft limit's signal
+            assert ran.total_seconds() < soft, ran  # stopped by itself: before the soft limit's signal
             kept = body["result"]
             assert kept["best_so_far"] is True and kept["pose_stage"] == "shading"
             best = Camera.from_dict(kept["camera"])
