@@ -158,3 +158,12 @@ def write_sheet(name: str, tiles: list[tuple[np.ndarray, np.ndarray]]) -> Path:
     path = RESULTS / f"{name}.png"
     save_png(path, contact_sheet(tiles))
     return path
+
+
+def publish(name: str, tag: str, rows: list[dict], data: dict, tiles: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    """Print ``rows`` as a table, then write ``bench/results/<name>[_<tag>].json`` (``rows`` and
+    ``data``) and its contact sheet of ``tiles``, printing their paths."""
+    print(table(rows, list(rows[0])))
+    full = name + (f"_{tag}" if tag else "")
+    print(write_report(full, {"rows": rows, **data}))
+    print(write_sheet(full, tiles))

@@ -39,7 +39,7 @@ from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import random_framed_view, synthesize, synthesize_hazard
 from vehicle_pose.search.views import view_camera
 
-from common import table, write_report, write_sheet
+from common import publish
 
 W, H = 640, 480
 SENSOR_MM = 5.6  # a phone's main sensor width, for the focal plane form
@@ -143,10 +143,7 @@ def main() -> None:
     for kind in ("matte", "mirror-paint"):
         rows.append(summary([r for r in runs if r["kind"] == kind], f"all {kind}"))
     rows.append(summary(runs, "all"))
-    print(table(rows, list(rows[0])))
-    name = "exif" + (f"_{args.tag}" if args.tag else "")
-    print(write_report(name, {"rows": rows, "runs": runs, "args": vars(args)}))
-    print(write_sheet(name, tiles))
+    publish("exif", args.tag, rows, {"runs": runs, "args": vars(args)}, tiles)
 
 
 if __name__ == "__main__":

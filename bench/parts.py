@@ -29,6 +29,7 @@ from dataclasses import replace
 import numpy as np
 
 from vehicle_pose import register
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.parts import LEGEND
 from vehicle_pose.render.overlay import draw_overlay
@@ -37,7 +38,16 @@ from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import synthesize
 from vehicle_pose.search.views import view_camera
 
-from common import perturbed, table, write_report, write_sheet
+from common import perturbed, publish
+
+
+def random_view(model: VehicleModel, rng: np.random.Generator) -> tuple[float, float, Camera]:
+    """Azimuth, elevation and camera of a random view (the module docstring)."""
+    az, el = float(rng.uniform(0, 360)), float(rng.uniform(0, 35))
+    fill = float(rng.uniform(0.5, 0.9))
+    w, h = 640 * fill, 480 * fill
+    box = (320 - w / 2, 240 - h / 2, 320 + w / 2, 240 + h / 2)
+    return az, el, view_camera(model, az, el, 0.0, box, 640, 480, float(rng.uniform(600, 2400)))
 
 
 def main() -> None:
@@ -61,11 +71,7 @@ def main() -> None:
         geometric = VehicleModel(replace(model.info, parts_path=None), model.mesh, model.levels)
         agree, seen, worst = 0, 0, (2.0, None)
         for _ in range(args.views):
-            az, el = float(rng.uniform(0, 360)), float(rng.uniform(0, 35))
-            fill = float(rng.uniform(0.5, 0.9))
-            w, h = 640 * fill, 480 * fill
-            box = (320 - w / 2, 240 - h / 2, 320 + w / 2, 240 + h / 2)
-            cam = view_camera(model, az, el, 0.0, box, 640, 480, float(rng.uniform(600, 2400)))
+            _, _, cam = random_view(model, rng)
             built, guessed = part_map(model, cam, renderer).image(), part_map(geometric, cam, renderer).image()
             body = panels[built]
             same = int((built[body] == guessed[body]).sum())
@@ -80,11 +86,7 @@ def main() -> None:
               f"(worst view {100 * worst[0]:5.1f} %)", flush=True)
         registered, seconds = [], []
         for k in range(args.registrations):
-            az, el = float(rng.uniform(0, 360)), float(rng.uniform(0, 35))
-            fill = float(rng.uniform(0.5, 0.9))
-            w, h = 640 * fill, 480 * fill
-            box = (320 - w / 2, 240 - h / 2, 320 + w / 2, 240 + h / 2)
-            truth = view_camera(model, az, el, 0.0, box, 640, 480, float(rng.uniform(600, 2400)))
+            az, el, truth = random_view(model, rng)
             true_map = part_map(model, truth, renderer).image()
             car = true_map > 0
             photo, _ = synthesize(model.mesh, truth, renderer=renderer, seed=k)
@@ -119,10 +121,7 @@ def main() -> None:
              "registered min %": 100 * float(np.min([r["pixel_accuracy"] for r in runs])) if runs else float("nan"),
              "map+png median s": float(np.median([r["parts_seconds"] for r in runs])) if runs else float("nan")}
     rows.append(every)
-    print(table(rows, list(rows[0])))
-    name = "parts" + (f"_{args.tag}" if args.tag else "")
-    print(write_report(name, {"rows": rows, "runs": runs, "args": vars(args)}))
-    print(write_sheet(name, tiles))
+    publish("parts", args.tag, rows, {"runs": runs, "args": vars(args)}, tiles)
 
 
 if __name__ == "__main__":

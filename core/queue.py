@@ -14,6 +14,7 @@ from functools import lru_cache
 from typing import Any
 
 from celery import Celery
+from kombu.transport.redis import PRIORITY_STEPS, Channel
 
 from core.config import Settings, get_settings
 
@@ -25,12 +26,12 @@ BROKER_POOL_LIMIT = 64
 QUEUE = "registrations"
 
 # Message priorities (on Redis the lower number is served first: kombu pops its priority lists
-# 0, 3, 6, 9 in that order). A job is sent at PRIORITY_NEW; a job sent again (handed back at a
+# PRIORITY_STEPS, 0, 3, 6, 9, in that order). A job is sent at PRIORITY_NEW; a job sent again (handed back at a
 # stop, taken back from a lost worker) at PRIORITY_AGAIN, so it keeps its place ahead of the
 # jobs queued after it.
 PRIORITY_AGAIN = 0
 PRIORITY_NEW = 3
-PRIORITY_LISTS = tuple(f"{QUEUE}\x06\x16{p}" if p else QUEUE for p in (0, 3, 6, 9))
+PRIORITY_LISTS = tuple(f"{QUEUE}{Channel.sep}{p}" if p else QUEUE for p in PRIORITY_STEPS)
 """The Redis lists of the queue, one per priority step (kombu's key for each)."""
 TASK = "worker.tasks.register_job"
 PREPARE_TASK = "worker.tasks.prepare_model"

@@ -76,6 +76,11 @@ def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS, reduce_to: int | 
     return np.ascontiguousarray(rgb)
 
 
+def _quarter_turned(exif: Image.Exif) -> bool:
+    """Whether the EXIF orientation turns the stored image by a quarter (values 5-8)."""
+    return exif.get(0x0112, 1) in (5, 6, 7, 8)
+
+
 def verify_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> tuple[int, int]:
     """Width and height (EXIF orientation applied) of a photo :func:`decode_photo` would accept,
     found without building its RGB array: a JPEG is decoded at an eighth of its size (every
@@ -86,8 +91,8 @@ def verify_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> tuple[int, int
         if img.format == "JPEG":
             img.draft(img.mode, (max(1, width // 8), max(1, height // 8)))
         img.load()
-        orientation = img.getexif().get(0x0112, 1)
-    if orientation in (5, 6, 7, 8):  # turned by a quarter: the photo's sides swap
+        turned = _quarter_turned(img.getexif())
+    if turned:  # the photo's sides swap
         width, height = height, width
     if width < 8 or height < 8:
         raise PhotoError(f"photo of size {width}x{height} is too small")
@@ -180,7 +185,7 @@ def read_focal(data: bytes, *, max_pixels: int = MAX_PIXELS) -> ExifFocal:
     with _opened(data, max_pixels) as img:
         width, height = img.width, img.height
         exif = img.getexif()
-    turned = exif.get(0x0112, 1) in (5, 6, 7, 8)
+    turned = _quarter_turned(exif)
     tags = exif.get_ifd(ExifTags.IFD.Exif)
     focal_mm = _number(tags.get(_FOCAL_LENGTH))
     written = _number(tags.get(_FOCAL_35MM))

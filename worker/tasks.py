@@ -44,15 +44,19 @@ def start_lease_reaper(sender: Any = None, **_: object) -> None:
     if sender is None:
         return
     settings, app = get_settings(), sender.app
+
+    def send_again(job_id: str) -> None:
+        app.send_task(TASK, args=[job_id], task_id=job_id, priority=PRIORITY_AGAIN)
+
     try:
-        resend_handed_back(lambda job_id: app.send_task(TASK, args=[job_id], task_id=job_id, priority=PRIORITY_AGAIN))
+        resend_handed_back(send_again)
     except Exception as exc:  # database or broker away: their messages come back in time anyway
         log.warning("cannot send the handed-back jobs again: %s: %s", type(exc).__name__, exc)
 
     def loop() -> None:
         while not _reaper_stop.wait(settings.lease_s / 3.0):
             try:
-                reap_stale_jobs(settings, lambda job_id: app.send_task(TASK, args=[job_id], priority=PRIORITY_AGAIN))
+                reap_stale_jobs(settings, send_again)
             except Exception as exc:  # database or broker away: the next round tries again
                 log.warning("lease reaper: %s: %s", type(exc).__name__, exc)
 

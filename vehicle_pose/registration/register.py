@@ -157,15 +157,16 @@ def register(
     timings: dict[str, float] = {}
     listed: list[dict[str, Any]] = []
     stage = "shading"
-    lens = Lens(exif)
-    if options.search.pose_search == "sphere" and init_camera is None:
+    sphere = options.search.pose_search == "sphere" and init_camera is None
+    # The EXIF holds the focal length of the view-sphere search only: a start camera's wins.
+    lens = Lens(exif, options if sphere else None)
+    if sphere:
         source = "bbox" if bbox is not None else "none"
         # The search without a start camera runs without the edge term, and says so in the
         # options it reports (docs/decisions/0007-no-hint-search.md).
         options = options.replace(edge_weight=0.0)
-        band = lens.band(options)
         found, swept, stage = sphere_pose(work, model, options, renderer, optimizer, box=rect, foreground=fg,
-                                          progress=progress, focal_band=band, deadline=watch)
+                                          progress=progress, focal_band=lens.band, deadline=watch)
         timings["sphere"] = swept.seconds
         levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
         checks = (swept.checks | fit_checks(work, model, found, None, options.color, renderer)
@@ -247,26 +248,22 @@ def _checking(progress: Progress | None, watch: Deadline) -> Progress:
 
 
 class Lens:
-    """What the photo's EXIF says of the focal length, and whether the search used it."""
+    """What the photo's EXIF says of the focal length, and the focal lengths (image widths) it
+    lets the search reach: ``band``, within ``exif_tolerance`` of the EXIF's, for a search that
+    uses it (``options`` given) when there is one and the option is on; else None."""
 
-    def __init__(self, exif: ExifFocal | None) -> None:
+    def __init__(self, exif: ExifFocal | None, options: RegistrationOptions | None) -> None:
         self.exif = exif
-        self.used = False
-
-    def band(self, options: RegistrationOptions) -> tuple[float, float] | None:
-        """The focal lengths (image widths) the search may reach: within ``exif_tolerance`` of
-        the EXIF's, None where there is none or the option is off."""
-        if self.exif is None or self.exif.widths is None or not options.search.exif_focal:
-            return None
-        self.used = True
-        k = options.search.exif_tolerance
-        return self.exif.widths / k, self.exif.widths * k
+        self.band: tuple[float, float] | None = None
+        if options is not None and options.search.exif_focal and exif is not None and exif.widths is not None:
+            k = options.search.exif_tolerance
+            self.band = (exif.widths / k, exif.widths * k)
 
     def report(self, final: Camera) -> dict[str, Any]:
         """The result's ``focal``: where the focal length came from (``exif`` or ``searched``),
         the one found (pixels and image widths) and the EXIF's reading (None without EXIF)."""
         exif = self.exif
-        return {"source": "exif" if self.used else "searched", "pixels": final.focal,
+        return {"source": "exif" if self.band is not None else "searched", "pixels": final.focal,
                 "widths": final.focal / final.width,
                 "exif": None if exif is None or (exif.form is None and exif.warning is None and exif.focal_mm is None)
                 else exif.to_dict() | {"pixels": exif.pixels(final.width)}}

@@ -378,8 +378,8 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
         The positions are first tried every ``stride`` steps, then the best of them again
         one step either way (1: every step).
     between : callable, keyword-only
-        Called after each target's placements (the targets are then placed one at a time, with
-        the same results): a caller's deadline can stop the match between targets.
+        Called after each target's placements (the targets are placed one at a time): a
+        caller's deadline can stop the match between targets.
     """
     if not targets:
         raise ValueError("matching needs at least one target box")
@@ -390,18 +390,12 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
     _, H, W = distance.shape
     cx, cy = principal if principal is not None else (0.5 * (W - 1), 0.5 * (H - 1))
     boxes = np.asarray(targets, np.float64)
-
-    def place(chosen: npt.NDArray[np.float64]) -> tuple[Any, Any]:
-        return _match(templates.points, templates.bins, templates.offsets, templates.boxes, mask, costs,
-                      float(min_seen), chosen, factors.astype(np.float64), float(step), float(min_iou),
-                      float(cx), float(cy), float(stride))
-
-    if between is None:
-        best, where = place(boxes)
-    else:
-        done = []
-        for k in range(len(boxes)):
-            done.append(place(boxes[k:k + 1]))
+    done = []
+    for k in range(len(boxes)):  # each target on its own: the same placements as all at once
+        done.append(_match(templates.points, templates.bins, templates.offsets, templates.boxes, mask, costs,
+                           float(min_seen), boxes[k:k + 1], factors.astype(np.float64), float(step),
+                           float(min_iou), float(cx), float(cy), float(stride)))
+        if between is not None:
             between()
-        best, where = np.concatenate([d[0] for d in done], axis=1), np.concatenate([d[1] for d in done], axis=1)
+    best, where = np.concatenate([d[0] for d in done], axis=1), np.concatenate([d[1] for d in done], axis=1)
     return Placements(best, where[..., 0], where[..., 1], where[..., 2])
