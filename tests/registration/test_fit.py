@@ -1,4 +1,4 @@
-"""The fit: perspective probes."""
+"""The fit: perspective probes, and the screen that ends a fit the shading does not explain."""
 
 from __future__ import annotations
 
@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from vehicle_pose import RegistrationOptions
-from vehicle_pose.registration.fit import probe_factors
+from vehicle_pose.registration.fit import FitPlan, fit, level_sizes, loss_share, probe_factors
+from vehicle_pose.render.synth import synthesize
+from vehicle_pose.search.optimize import NelderMeadRestarts
 
-from helpers import view
+from helpers import perturbed, view
 
 pytestmark = pytest.mark.slow
 
@@ -22,3 +24,22 @@ def test_a_focal_length_outside_the_usual_range_adds_a_probe_to_its_middle(sedan
         *same, extra = probe_factors(cam, options)
         assert same == list(options.probes.focal_starts)
         assert cam.focal * extra == pytest.approx(np.sqrt(0.7 * 4.0) * 640)
+
+
+def test_a_screen_ends_the_fit_after_its_first_level_only_where_the_loss_is_above_it(sedan, renderer):
+    truth = view(sedan, 40.0, 12.0, width=320, height=240, focal=450.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=2)
+    start = perturbed(truth, 2, degrees=6.0)
+    options = RegistrationOptions.from_flat(max_evaluations=60, fine_evaluations=30, focal_starts=())
+    optimizer = NelderMeadRestarts()
+    sizes = level_sizes(320, 240, options.pyramid, True)
+    assert len(sizes) > 1
+    # A render: the shading explains it, its first level's loss is far below a screen of 0.3.
+    full = fit(photo, sedan, start, options, FitPlan.hinted(options, screen=0.3), renderer, optimizer)
+    assert not full.screened and len(full.levels) == len(sizes)
+    assert loss_share(full.levels[0].loss, photo, options.color) < 0.3
+    # The same fit with a screen below its first level's loss ends there, on that level's pose.
+    screened = fit(photo, sedan, start, options, FitPlan.hinted(options, screen=0.0), renderer, optimizer)
+    assert screened.screened and len(screened.levels) == 1
+    assert screened.levels[0].width == sizes[0][0]
+    assert screened.foreground.shape == photo.shape[:2]

@@ -104,3 +104,23 @@ def test_without_a_box_and_the_view_sphere_the_shading_pose_stands(sedan, render
                                                             fine_evaluations=20, focal_starts=(),
                                                             sphere_without_box=False))
     assert result.pose_stage == "shading" and "structure" not in result.timings
+
+
+@pytest.mark.slow
+def test_a_screened_shading_fit_leaves_the_structures_pose_as_it_was(sedan, renderer):
+    truth = view(sedan, 40.0, 14.0, width=320, height=240, focal=450.0)
+    photo, mask, truth = synthesize_hazard(sedan.mesh, truth, "mirror-floor", renderer=renderer, seed=0)
+    start = perturbed(truth, 0, degrees=10.0)
+    # A screen of 0 ends every shading fit after its first level; one of 1 never does.
+    runs = [register(photo, sedan, init_camera=start, bbox=_box(mask), renderer=renderer,
+                     options=RegistrationOptions.from_flat(shading_trust=0.0, shading_screen=screen))
+            for screen in (0.0, 1.0)]
+    screened, full = runs
+    assert screened.pose_stage == full.pose_stage == "structure"
+    # The structure's search does not start from the shading fit: the pose is the same, for
+    # fewer evaluations and less time in the shading fit.
+    np.testing.assert_allclose(screened.camera.R, full.camera.R, atol=1e-9)
+    np.testing.assert_allclose(screened.camera.t, full.camera.t, atol=1e-9)
+    assert screened.evaluations < full.evaluations
+    assert screened.timings["shading"] < full.timings["shading"]
+    assert projection_error(sedan, screened.camera, truth) < 3.0

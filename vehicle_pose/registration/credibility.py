@@ -8,8 +8,7 @@ import numpy.typing as npt
 
 from vehicle_pose.metrics import iou
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.photo import is_gray
-from vehicle_pose.registration.fit import Fit
+from vehicle_pose.registration.fit import Fit, loss_share
 from vehicle_pose.registration.segmentation import silhouette
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.segment.region import VehicleRegion
@@ -80,11 +79,6 @@ def _edge_confidence(checks: dict[str, float]) -> float:
         return vehicle
     unique = float(np.clip(0.5 + 2.5 * (checks.get("margin", 0.0) - MARGIN), 0.0, 1.0))
     return min(unique, vehicle)
-
-
-def loss_share(loss: float, work: npt.NDArray[np.uint8], color: bool) -> float:
-    """A loss over the loss's maximum: 3 for a colour loss on a colour photo, else 1."""
-    return loss / (3.0 if color and not is_gray(work) else 1.0)
 
 
 def fit_checks(

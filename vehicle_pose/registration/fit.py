@@ -24,7 +24,7 @@ from vehicle_pose.loss.alternatives import make_loss
 from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.loss.invariant import make_target
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.photo import is_gray, resized, resized_mask
 from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.options import Pyramid, RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
@@ -33,7 +33,8 @@ from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow
 
-__all__ = ["Progress", "FitPlan", "Fit", "fit", "level_sizes", "face_budget", "probe_factors", "search_frame"]
+__all__ = ["Progress", "FitPlan", "Fit", "fit", "level_sizes", "face_budget", "probe_factors", "search_frame",
+           "loss_share"]
 
 Progress = Callable[[str, int, float], None]
 """``progress(stage, evaluations, loss)``, called every 20 evaluations and after each level."""
@@ -50,7 +51,9 @@ class FitPlan:
     again between levels; ``edge_weight``: the edge term's weight (0: none); ``step_scale``
     scales the first level's simplex; ``focal_band``: the focal lengths (image widths, low and
     high) the fit may reach (a lens known from the photo's EXIF), None for any; with a band the
-    perspective probes do not run.
+    perspective probes do not run; ``screen``: the loss over its maximum (:func:`loss_share`)
+    above which the fit ends after its first level, where the shading does not explain the
+    photo even coarsely and the caller has another way to the pose, None to run every level.
     """
 
     coarse_to_fine: bool
@@ -59,23 +62,26 @@ class FitPlan:
     edge_weight: float
     step_scale: float = 1.0
     focal_band: tuple[float, float] | None = None
+    screen: float | None = None
 
     @classmethod
-    def hinted(cls, options: RegistrationOptions) -> FitPlan:
+    def hinted(cls, options: RegistrationOptions, screen: float | None = None) -> FitPlan:
         """The registration from a client's start camera: every option as given."""
         seg = options.segmentation
         return cls(options.pyramid.coarse_to_fine, options.budgets.max_evaluations, seg.grabcut and seg.resegment,
-                   options.terms.edge_weight)
+                   options.terms.edge_weight, screen=screen)
 
 
 @dataclass
 class Fit:
-    """One fit's pose (at working size), its levels, and the foreground it ended on."""
+    """One fit's pose (at working size), its levels, and the foreground it ended on;
+    ``screened``: the fit ended after its first level, its plan's ``screen`` passed."""
 
     camera: Camera
     levels: list[LevelReport]
     foreground: npt.NDArray[np.bool_]
     grabcut_seconds: float
+    screened: bool = False
 
     @property
     def loss(self) -> float:
@@ -84,6 +90,11 @@ class Fit:
     @property
     def objective(self) -> float:
         return self.levels[-1].objective
+
+
+def loss_share(loss: float, work: npt.NDArray[np.uint8], color: bool) -> float:
+    """A loss over the loss's maximum: 3 for a colour loss on a colour photo, else 1."""
+    return loss / (3.0 if color and not is_gray(work) else 1.0)
 
 
 def level_sizes(width: int, height: int, pyramid: Pyramid, coarse_to_fine: bool) -> list[tuple[int, int]]:
@@ -246,6 +257,9 @@ def fit(
             deadline.offer(camera, "shading")
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
+        if (plan.screen is not None and li == 0 and len(sizes) > 1
+                and loss_share(loss, work, options.color) > plan.screen):
+            return Fit(camera, levels, foreground, grabcut_seconds, screened=True)
         if segment_again and li < len(sizes) - 1:
             t = time.perf_counter()
             # At the next level's resolution: a mask upsampled from a coarser GrabCut

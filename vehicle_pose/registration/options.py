@@ -192,7 +192,8 @@ class Structure(_Group):
 
     When the shading fit's loss over its maximum is above ``shading_trust`` (the shading model
     does not explain the photo: real paint and glass mirror their surroundings), the pose is
-    found on the photo's edges instead, from the client's start: the rotation and focal length
+    found on the photo's edges instead, from the client's start (a shading fit whose first level
+    ends above ``shading_screen`` stops there: ``docs/decisions/0022-shading-screen.md``): the rotation and focal length
     are searched on the directional chamfer (truncated at ``anchor_tau`` of the diagonal) with
     the place and size fitted to the box, at ``structure_size`` pixels, by the cross-entropy
     method (``anchor_population`` samples a generation, the first spread by ``structure_spread``
@@ -219,6 +220,9 @@ class Structure(_Group):
                                  "averaged", low=1, high=8)
     shading_trust: float = option(0.15, "loss over its maximum up to which the shading fit is credible",
                                   low=0.0, high=1.0)
+    shading_screen: float = option(0.3, "with a start camera, where the structure can find the pose instead: the "
+                                   "loss over its maximum at the shading fit's first level above which the fit "
+                                   "ends there (at least shading_trust; 1: every level runs)", low=0.0, high=1.0)
     sphere_without_box: bool = option(True, "with a start camera and no box, where the shading is not credible: "
                                       "the pose found by the view-sphere search narrowed to the views near the "
                                       "start (search.sphere_spread)")

@@ -18,9 +18,9 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.pose import camera_to_theta, visible_side
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import ExifFocal, resized, resized_mask
-from vehicle_pose.registration.credibility import confidence, fit_checks, loss_share
+from vehicle_pose.registration.credibility import confidence, fit_checks
 from vehicle_pose.registration.deadline import Deadline
-from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
+from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit, loss_share
 from vehicle_pose.registration.hypotheses import photo_pose
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
@@ -180,10 +180,14 @@ def register(
         source, method = "init_camera", "given"
         timings["start"] = 0.0
         start = _given_start(work, model, init_camera, rect, options)
-        found = fit(work, model, start, options, FitPlan.hinted(options), renderer, optimizer, progress, fg, box=rect,
-                    deadline=watch)
-        spent, grabcut_seconds = [found], found.grabcut_seconds
         st = options.structure
+        # Where the structure can find the pose instead, a shading fit that does not explain
+        # the photo even at its coarsest level ends there (docs/decisions/0022-shading-screen.md).
+        elsewhere = st.structure and (rect is not None or (fg is None and st.sphere_without_box))
+        plan = FitPlan.hinted(options, screen=max(st.shading_screen, st.shading_trust) if elsewhere else None)
+        found = fit(work, model, start, options, plan, renderer, optimizer, progress, fg, box=rect, deadline=watch)
+        spent, grabcut_seconds = [found], found.grabcut_seconds
+        timings["shading"] = sum(level.seconds for level in found.levels)
         if st.structure and loss_share(found.loss, work, options.color) > st.shading_trust:
             # The shading does not explain the photo (real paint and glass mirror their
             # surroundings): the pose is found on the photo's edges instead. In the client's

@@ -14,6 +14,7 @@ only so that :meth:`Renderer.render` can cull them from behind.
 from __future__ import annotations
 
 import math
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import cached_property
@@ -29,7 +30,7 @@ from vehicle_pose.model.mesh import KINDS, Mesh
 from vehicle_pose.render.buffers import GpuMesh
 from vehicle_pose.render.gl import get_context
 
-__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight", "uniform"]
+__all__ = ["Frame", "Renderer", "RenderClock", "projection_matrix", "clip_planes", "headlight", "uniform"]
 
 _VERTEX_SHADER = """
 #version 330
@@ -194,6 +195,18 @@ class Frame:
         return self.full(self.labels > 0)
 
 
+@dataclass
+class RenderClock:
+    """What a :class:`Renderer`'s renders cost: how many, the seconds until the drawing was done
+    (``draw``, the context finished before the read-back is timed) and the seconds of the
+    read-back into arrays (``read``). For the speed benchmark: the wait for the drawing to
+    finish takes the overlap of drawing and reading away."""
+
+    renders: int = 0
+    draw: float = 0.0
+    read: float = 0.0
+
+
 class Renderer:
     """Renders model attributes for any camera; owns GPU buffers for recently used meshes.
 
@@ -203,9 +216,13 @@ class Renderer:
         Defaults to the process's headless context (:func:`vehicle_pose.render.gl.get_context`).
     cache_size : int, keyword-only
         How many meshes keep their GPU buffers.
+    clock : RenderClock, optional, keyword-only
+        Counts :meth:`render`'s calls and times its drawing and read-back apart.
     """
 
-    def __init__(self, ctx: moderngl.Context | None = None, *, cache_size: int = 8) -> None:
+    def __init__(self, ctx: moderngl.Context | None = None, *, cache_size: int = 8,
+                 clock: RenderClock | None = None) -> None:
+        self.clock = clock
         self.ctx = ctx if ctx is not None else get_context()
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         uniform(self.program, "tex").value = 0
@@ -307,6 +324,8 @@ class Renderer:
         self.ctx.disable(moderngl.BLEND)
         self.ctx.front_face = "ccw"
         self.ctx.cull_face = "back"
+        clock = self.clock
+        t0 = time.perf_counter() if clock is not None else 0.0
         try:
             gpu = self._gpu_mesh(mesh)
             if gpu.texture is not None:
@@ -317,8 +336,15 @@ class Renderer:
                 else:
                     self.ctx.disable(moderngl.CULL_FACE)
                 vao.render(moderngl.TRIANGLES)
+            if clock is not None:
+                self.ctx.finish()
+                t1 = time.perf_counter()
             attrs = np.frombuffer(fbo.read(viewport=win, components=4, attachment=0, dtype="f4"), np.float32)
             labels = np.frombuffer(fbo.read(viewport=win, components=1, attachment=1, dtype="f1"), np.uint8)
+            if clock is not None:
+                clock.renders += 1
+                clock.draw += t1 - t0
+                clock.read += time.perf_counter() - t1
         finally:
             self.ctx.scissor = None
         err = self.ctx.error
