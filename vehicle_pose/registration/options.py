@@ -192,15 +192,15 @@ class Structure(_Group):
 
     When the shading fit's loss over its maximum is above ``shading_trust`` (the shading model
     does not explain the photo: real paint and glass mirror their surroundings), the pose is
-    found on the photo's edges instead, from the client's start (a shading fit whose first level
-    ends above ``shading_screen`` stops there: ``docs/decisions/0022-shading-screen.md``): the rotation and focal length
-    are searched on the directional chamfer (truncated at ``anchor_tau`` of the diagonal) with
-    the place and size fitted to the box, at ``structure_size`` pixels, by the cross-entropy
-    method (``anchor_population`` samples a generation, the first spread by ``structure_spread``
-    degrees, ``anchor_evaluations`` a search; ``structure_runs`` searches with their own
-    samples, their results averaged: ``docs/decisions/0016-averaged-anchors.md``); then all
-    coordinates on the chamfer (truncated at ``structure_tau``) and the box term
-    (``structure_evaluations``).
+    found on the photo's edges instead, from the client's start (a shading fit whose first
+    level ends above ``shading_screen`` stops there: ``docs/decisions/0022-shading-screen.md``):
+    the rotation and focal length are searched on the directional chamfer (truncated at
+    ``anchor_tau`` of the diagonal) with the place and size fitted to the box, at
+    ``structure_size`` pixels, by the cross-entropy method (``anchor_population`` samples a
+    generation, the first spread by ``structure_spread`` degrees, ``anchor_evaluations`` a
+    search; ``structure_runs`` searches with their own samples, their results averaged:
+    ``docs/decisions/0016-averaged-anchors.md``); then all coordinates on the chamfer (truncated
+    at ``structure_tau``) and the box term (``structure_evaluations``).
     """
 
     structure: bool = option(True, "with a start camera and a box: find the pose on the photo's edges and the box "
