@@ -21,10 +21,16 @@ fi
 python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[service,test]'
-# numba compiles the preparation's kernels on first use and keeps them beside the sources:
-# preparing one shipped model now, into a throw-away cache, spares a user's first preparation
-# the 4-5 s of compiling them.
+# numba compiles its kernels on first use and keeps them beside the sources: preparing one
+# shipped model and registering the example photo with no hint (the search that uses every
+# kernel), into a throw-away cache, spares a user's first preparation the 4-5 s and first
+# registration the 15 s of compiling them.
 warm="$(mktemp -d)"
-.venv/bin/vehicle-pose prepare sedan --cache-dir "$warm" >/dev/null 2>&1 || echo "note: could not prepare the sedan now (no OpenGL?); the kernels compile on first use"
+if .venv/bin/vehicle-pose prepare sedan --cache-dir "$warm" >/dev/null 2>&1; then
+  .venv/bin/vehicle-pose register examples/sedan.jpg --model sedan --cache-dir "$warm" --out "$warm/result.json" \
+    >/dev/null 2>&1 || echo "note: the example did not register now; the registration's kernels compile on first use"
+else
+  echo "note: could not prepare the sedan now (no OpenGL?); the kernels compile on first use"
+fi
 rm -rf "$warm"
 echo "ready: .venv/bin/vehicle-pose"
