@@ -7,13 +7,15 @@ Modes: ``hinted-photoreal`` (start camera and box from each case's ``init.json``
 ``hinted-real`` (the same on the real photos), ``none-real`` and ``none-photoreal`` (no hint).
 ``--cases N`` takes N cases of each set, spread evenly (0: every case). For every
 registration: the engine's seconds, its evaluations, the stages the result times (the shading
-fit, the structure's and the view-sphere's searches, GrabCut, the part map), and the renders of
-the searches, split into drawing (the context finished) and read-back; "rest" is what is left
-(the losses, segmentation bookkeeping and Python). The model's preparation (levels of detail,
+fit, the structure's and the view-sphere's searches, the part map), and what the engine's clock
+(:mod:`vehicle_pose.clock`) charges to each kind of work: the searches' renders split into
+drawing (the context finished) and read-back, the shading losses, the chamfers, template
+matching, GrabCut and the photo's edges; "rest" is what is left (camera arithmetic, the
+optimisers, bookkeeping and Python). The model's preparation (levels of detail,
 outlines, part labels and templates, made from the mesh file) is timed apart, once per model. Prints one table (the
-medians per mode) and writes bench/results/stages[_TAG].json. The renderer's clock finishes the
-context before each read-back, which takes away the overlap of drawing and reading: the engine
-seconds here are a little above a plain run's.
+medians per mode) and writes bench/results/stages[_TAG].json. While the clock runs the renderer
+finishes the context before each read-back, which takes away the overlap of drawing and
+reading: the engine seconds here are a little above a plain run's.
 """
 
 from __future__ import annotations
@@ -27,17 +29,19 @@ import numpy as np
 from real import load_models
 
 from vehicle_pose import RegistrationOptions
+from vehicle_pose.clock import clocked
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import load_photo
 from vehicle_pose.registration.register import register
-from vehicle_pose.render.renderer import RenderClock, Renderer
+from vehicle_pose.render.renderer import Renderer
 
 from common import photoreal_cases, table, write_report
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 MODES = ("hinted-photoreal", "hinted-real", "none-real", "none-photoreal")
-STAGES = ("shading", "structure", "sphere", "photo_search", "grabcut", "parts")
+STAGES = ("shading", "structure", "sphere", "photo_search", "parts")
+KINDS = ("draw", "read", "loss", "chamfer", "matching", "grabcut", "photo edges")
 
 
 def spread(items: list, n: int) -> list:
@@ -78,8 +82,7 @@ def main() -> None:
     ap.add_argument("--photoreal", type=Path, default=SHARED / "bench")
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
-    clock = RenderClock()
-    renderer = Renderer(clock=clock)
+    renderer = Renderer()
     options = RegistrationOptions()
     runs: list[dict] = []
     prep: dict[str, float] = {}
@@ -91,30 +94,29 @@ def main() -> None:
                 prep[model.info.id] = prepared(model, renderer)
             photo = load_photo(path)
             hinted = mode.startswith("hinted")
-            before = RenderClock(clock.renders, clock.draw, clock.read)
             t = time.perf_counter()
-            res = register(photo, model, init_camera=Camera.from_dict(hint) if hinted else None,
-                           bbox=hint.get("bbox") if hinted else None, options=options, renderer=renderer)
+            with clocked() as clock:
+                res = register(photo, model, init_camera=Camera.from_dict(hint) if hinted else None,
+                               bbox=hint.get("bbox") if hinted else None, options=options, renderer=renderer)
             wall = time.perf_counter() - t
             r = {"mode": mode, "case": name, "engine s": res.seconds, "wall s": wall,
-                 "evaluations": res.evaluations, "renders": clock.renders - before.renders,
-                 "draw s": clock.draw - before.draw, "read s": clock.read - before.read,
+                 "evaluations": res.evaluations, "renders": clock.calls.get("draw", 0),
                  "pose_stage": res.pose_stage}
+            for kind in KINDS:
+                r[f"{kind} s"] = clock.seconds.get(kind, 0.0)
             for stage in STAGES:
                 r[f"{stage} s"] = res.timings.get(stage, 0.0)
-            searched = sum(r[f"{s} s"] for s in STAGES if s not in ("grabcut", "parts"))
-            r["rest s"] = res.seconds - r["draw s"] - r["read s"] - r["grabcut s"] - r["parts s"]
-            r["searches s"] = searched
-            runs.append(r)
+            r["rest s"] = res.seconds - sum(clock.seconds.values()) - r["parts s"]
             print(f"{mode:16s} {name:18s} {res.seconds:6.2f} s  {res.evaluations:5d} evals  {r['renders']:5d} renders  "
-                  f"draw {r['draw s']:5.2f} read {r['read s']:5.2f} grabcut {r['grabcut s']:5.2f} "
+                  + " ".join(f"{k} {r[f'{k} s']:.2f}" for k in KINDS) + f"  rest {r['rest s']:.2f}  "
                   + " ".join(f"{s} {r[f'{s} s']:.2f}" for s in STAGES[:4] if r[f"{s} s"] > 0)
                   + f"  ({res.pose_stage})", flush=True)
+            runs.append(r)
     rows = []
     for mode in dict.fromkeys(r["mode"] for r in runs):
         sel = [r for r in runs if r["mode"] == mode]
         row: dict = {"mode": mode, "cases": len(sel)}
-        for key in ("engine s", "evaluations", "renders", "draw s", "read s", "grabcut s", "parts s", "rest s",
+        for key in ("engine s", "evaluations", "renders", *(f"{k} s" for k in KINDS), "parts s", "rest s",
                     *(f"{s} s" for s in STAGES[:4])):
             row[key] = float(np.median([r[key] for r in sel]))
         row["ms a render"] = 1e3 * sum(r["draw s"] + r["read s"] for r in sel) / max(1, sum(r["renders"] for r in sel))

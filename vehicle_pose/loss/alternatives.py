@@ -13,6 +13,7 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.clock import timed
 from vehicle_pose.loss.invariant import InvariantLoss, PartsInvariantLoss, PhotoTarget
 from vehicle_pose.registry import LOSSES
 from vehicle_pose.render.renderer import Frame, headlight
@@ -60,6 +61,7 @@ class SquaredErrorLoss:
         self._sw = float(self._w.sum())
         self._base = float(self._w @ (self._g * self._g))
 
+    @timed("loss")
     def __call__(self, frame: Frame) -> float:
         s = headlight_shading(frame)[:, 0].astype(np.float64)
         idx = frame.covered_flat_indices()
@@ -74,6 +76,7 @@ class SilhouetteIoULoss:
         self._fg = target.foreground.reshape(-1)
         self._n_fg = int(self._fg.sum())
 
+    @timed("loss")
     def __call__(self, frame: Frame) -> float:
         idx = frame.covered_flat_indices()
         inter = int(self._fg[idx].sum())
@@ -93,6 +96,7 @@ class MutualInformationLoss:
         self._base = np.zeros((bins, bins + 1))
         np.add.at(self._base[:, 0], self._fb, self._w)
 
+    @timed("loss")
     def __call__(self, frame: Frame) -> float:
         s = headlight_shading(frame)[:, 0]
         idx = frame.covered_flat_indices()

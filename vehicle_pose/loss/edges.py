@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from vehicle_pose.clock import timed
 from vehicle_pose.render.renderer import Frame
 
 __all__ = ["PhotoEdges", "photo_edges", "model_edges", "EdgeLoss", "TwoWayChamfer", "ORIENTATIONS"]
@@ -61,6 +62,7 @@ def _orientation_bins(gx: npt.NDArray[np.float32], gy: npt.NDArray[np.float32]) 
     return np.minimum((theta / np.pi * ORIENTATIONS).astype(np.intp), ORIENTATIONS - 1)
 
 
+@timed("photo edges")
 def photo_edges(rgb: npt.NDArray[np.uint8], *, low: float = 40.0, high: float = 100.0,
                 within: npt.NDArray[np.bool_] | None = None, colour: bool = False) -> PhotoEdges:
     """The edges of an (H, W, 3) uint8 RGB photo and their directional distance transforms.
@@ -276,6 +278,7 @@ class EdgeLoss:
         self.crease = crease
         self.min_pixels = min_pixels
 
+    @timed("chamfer")
     def __call__(self, frame: Frame) -> float:
         if frame.labels.size == 0:
             return 1.0
@@ -350,6 +353,7 @@ class TwoWayChamfer:
         self.rows, self.cols = rows.astype(np.int32), cols.astype(np.int32)
         self.photo_bins = self.edges.bins[rows, cols].astype(np.int8)
 
+    @timed("chamfer")
     def parts(self, frame: Frame) -> tuple[float, float]:
         """The forward and the converse cost of a rendered frame, each in [0, 1]."""
         if frame.labels.size == 0:
@@ -381,6 +385,7 @@ class TwoWayChamfer:
                                 float(self.tau)) / self.tau
         return forward, float((reverse + self.outside * self.clutter) / (self.rows.size + self.outside))
 
+    @timed("chamfer")
     def __call__(self, frame: Frame) -> float:
         forward, reverse = self.parts(frame)
         return forward + reverse

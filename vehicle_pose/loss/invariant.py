@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.clock import timed
 from vehicle_pose.loss.moments import frame_loss
 from vehicle_pose.photo import is_gray
 from vehicle_pose.render.renderer import Frame
@@ -250,6 +251,7 @@ class InvariantLoss:
     def max_value(self, m: int) -> float:
         return float(min(self.n, m))
 
+    @timed("loss")
     def __call__(self, frame: Frame) -> float:
         if self.channels is normal_channels:
             return self._compiled(frame, merge=True)
@@ -290,5 +292,6 @@ class PartsInvariantLoss(InvariantLoss):
     def __init__(self, target: PhotoTarget, *, min_pixels: int = 16) -> None:
         super().__init__(target, channels=part_channels, min_pixels=min_pixels)
 
+    @timed("loss")
     def __call__(self, frame: Frame) -> float:
         return self._compiled(frame, merge=False)

@@ -24,13 +24,14 @@ import moderngl
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.clock import current
 from vehicle_pose.errors import RenderError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.mesh import KINDS, Mesh
 from vehicle_pose.render.buffers import GpuMesh
 from vehicle_pose.render.gl import get_context
 
-__all__ = ["Frame", "Renderer", "RenderClock", "projection_matrix", "clip_planes", "headlight", "uniform"]
+__all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight", "uniform"]
 
 _VERTEX_SHADER = """
 #version 330
@@ -195,18 +196,6 @@ class Frame:
         return self.full(self.labels > 0)
 
 
-@dataclass
-class RenderClock:
-    """What a :class:`Renderer`'s renders cost: how many, the seconds until the drawing was done
-    (``draw``, the context finished before the read-back is timed) and the seconds of the
-    read-back into arrays (``read``). For the speed benchmark: the wait for the drawing to
-    finish takes the overlap of drawing and reading away."""
-
-    renders: int = 0
-    draw: float = 0.0
-    read: float = 0.0
-
-
 class Renderer:
     """Renders model attributes for any camera; owns GPU buffers for recently used meshes.
 
@@ -216,13 +205,12 @@ class Renderer:
         Defaults to the process's headless context (:func:`vehicle_pose.render.gl.get_context`).
     cache_size : int, keyword-only
         How many meshes keep their GPU buffers.
-    clock : RenderClock, optional, keyword-only
-        Counts :meth:`render`'s calls and times its drawing and read-back apart.
+
+    While a :mod:`vehicle_pose.clock` runs, :meth:`render` charges its drawing (the context
+    finished) to ``draw`` and its read-back to ``read``.
     """
 
-    def __init__(self, ctx: moderngl.Context | None = None, *, cache_size: int = 8,
-                 clock: RenderClock | None = None) -> None:
-        self.clock = clock
+    def __init__(self, ctx: moderngl.Context | None = None, *, cache_size: int = 8) -> None:
         self.ctx = ctx if ctx is not None else get_context()
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         uniform(self.program, "tex").value = 0
@@ -324,7 +312,7 @@ class Renderer:
         self.ctx.disable(moderngl.BLEND)
         self.ctx.front_face = "ccw"
         self.ctx.cull_face = "back"
-        clock = self.clock
+        clock = current()
         t0 = time.perf_counter() if clock is not None else 0.0
         try:
             gpu = self._gpu_mesh(mesh)
@@ -342,9 +330,8 @@ class Renderer:
             attrs = np.frombuffer(fbo.read(viewport=win, components=4, attachment=0, dtype="f4"), np.float32)
             labels = np.frombuffer(fbo.read(viewport=win, components=1, attachment=1, dtype="f1"), np.uint8)
             if clock is not None:
-                clock.renders += 1
-                clock.draw += t1 - t0
-                clock.read += time.perf_counter() - t1
+                clock.add("draw", t1 - t0)
+                clock.add("read", time.perf_counter() - t1)
         finally:
             self.ctx.scissor = None
         err = self.ctx.error

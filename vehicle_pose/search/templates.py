@@ -39,6 +39,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit, prange
 
+from vehicle_pose.clock import timed
 from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.loss.edges import model_edges
 from vehicle_pose.model.library import VehicleModel
@@ -343,6 +344,7 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
     return best, where
 
 
+@timed("matching")
 def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: float, targets: list[Box], *,
           allowed: npt.NDArray[np.bool_] | None = None, scales: tuple[float, float] = (0.8, 2.0),
           scale_step: float = 1.1, step: float = 0.04, min_iou: float = 0.6, min_seen: float = 0.5,

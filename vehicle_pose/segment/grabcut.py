@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.clock import timed
+
 __all__ = ["grabcut_foreground", "disk"]
 
 
@@ -21,6 +23,7 @@ def disk(radius: int) -> npt.NDArray[np.uint8]:
     return kernel
 
 
+@timed("grabcut")
 def grabcut_foreground(
     rgb: npt.NDArray[np.uint8],
     silhouette: npt.NDArray[np.bool_],

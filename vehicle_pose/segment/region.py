@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.clock import timed
 from vehicle_pose.photo import resized
 from vehicle_pose.segment.grabcut import disk
 
@@ -68,6 +69,7 @@ def largest_component(mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
     return out
 
 
+@timed("grabcut")
 def find_vehicle(
     rgb: npt.NDArray[np.uint8],
     *,
