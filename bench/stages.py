@@ -11,9 +11,9 @@ fit, the structure's and the view-sphere's searches, the part map), and what the
 (:mod:`vehicle_pose.clock`) charges to each kind of work: the searches' renders split into
 drawing (the context finished) and read-back, the shading losses, the chamfers, template
 matching, GrabCut and the photo's edges; "rest" is what is left (camera arithmetic, the
-optimisers, bookkeeping and Python). The model's preparation (levels of detail,
-outlines, part labels and templates, made from the mesh file) is timed apart, once per model. Prints one table (the
-medians per mode) and writes bench/results/stages[_TAG].json. While the clock runs the renderer
+optimisers, bookkeeping and Python). The model's preparation (levels of detail, outlines,
+part labels and templates, made from the mesh file) is timed apart, once per model. Prints one
+table (the medians per mode) and writes bench/results/stages[_TAG].json. While the clock runs the renderer
 finishes the context before each read-back, which takes away the overlap of drawing and
 reading: the engine seconds here are a little above a plain run's.
 """
@@ -53,15 +53,13 @@ def spread(items: list, n: int) -> list:
 
 def cases(mode: str, real: Path, photoreal: Path, n: int) -> list[tuple[str, Path, VehicleModel, dict]]:
     """``(name, photo, model, hint)`` of a mode's cases; the hint is the start camera and box."""
-    out = []
     if mode.endswith("-real"):
         model = next(iter(load_models(real).values()))
-        for case in sorted((real / "cases").iterdir()):
-            out.append((case.name, case / "photo.jpg", model, json.loads((case / "init.json").read_text())))
+        folders = [(case, model) for case in sorted((real / "cases").iterdir())]
     else:
-        for case, _, model in photoreal_cases(photoreal):
-            out.append((case.name, case / "photo.jpg", model, json.loads((case / "init.json").read_text())))
-    return spread(out, n)
+        folders = [(case, model) for case, _, model in photoreal_cases(photoreal)]
+    return spread([(case.name, case / "photo.jpg", model, json.loads((case / "init.json").read_text()))
+                   for case, model in folders], n)
 
 
 def prepared(model: VehicleModel, renderer: Renderer) -> float:

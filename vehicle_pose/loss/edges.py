@@ -385,7 +385,6 @@ class TwoWayChamfer:
                                 float(self.tau)) / self.tau
         return forward, float((reverse + self.outside * self.clutter) / (self.rows.size + self.outside))
 
-    @timed("chamfer")
     def __call__(self, frame: Frame) -> float:
         forward, reverse = self.parts(frame)
         return forward + reverse

@@ -13,7 +13,7 @@ from vehicle_pose.registration.segmentation import silhouette
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.segment.region import VehicleRegion
 
-__all__ = ["confidence", "fit_checks", "loss_share"]
+__all__ = ["confidence", "fit_checks"]
 
 
 def confidence(checks: dict[str, float]) -> float:

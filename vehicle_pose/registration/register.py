@@ -188,7 +188,7 @@ def register(
         found = fit(work, model, start, options, plan, renderer, optimizer, progress, fg, box=rect, deadline=watch)
         spent, grabcut_seconds = [found], found.grabcut_seconds
         timings["shading"] = sum(level.seconds for level in found.levels)
-        if st.structure and loss_share(found.loss, work, options.color) > st.shading_trust:
+        if elsewhere and loss_share(found.loss, work, options.color) > st.shading_trust:
             # The shading does not explain the photo (real paint and glass mirror their
             # surroundings): the pose is found on the photo's edges instead. In the client's
             # box, by the structure's anchored search (docs/decisions/0012-structure-first.md);
@@ -199,7 +199,7 @@ def register(
                 timings["structure"] = structure.seconds
                 found, stage = structure_fit(work, model, structure, found, options, renderer), "structure"
                 spent.append(found)
-            elif fg is None and st.sphere_without_box:
+            else:
                 near = sphere_search(work, model, model.templates(renderer), options, renderer, optimizer,
                                      init=start, progress=progress)
                 timings["sphere"] = near.seconds

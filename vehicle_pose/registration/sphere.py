@@ -36,9 +36,8 @@ from vehicle_pose.loss.edges import PhotoEdges, TwoWayChamfer, photo_edges
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import resized
-from vehicle_pose.registration.credibility import loss_share
 from vehicle_pose.registration.deadline import Deadline
-from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
+from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit, loss_share
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import box_mask, resegment, silhouette
