@@ -26,8 +26,9 @@ def scene(sedan, renderer):
 @pytest.mark.parametrize("after", [0.3, 2.0])
 def test_a_passed_deadline_stops_the_search_within_a_second(sedan, renderer, scene, after):
     """No hint (the view-sphere search, then the shading polish): stopped while placing,
-    ranking or refining. The longest stretch without a check is the compiled template match
-    (0.7 s on two idle cores); the model's templates are prepared as a worker prepares them."""
+    ranking or refining. The template match hears the deadline after each share of its
+    templates; the longest stretch without a check is now a shading level's start (0.7 s on two
+    idle cores). The model's templates are prepared as a worker prepares them."""
     photo, truth = scene
     sedan.templates(renderer)
     t = time.monotonic()

@@ -10,6 +10,7 @@ from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import model_from_mesh
 from vehicle_pose.model.store import ModelStore
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
+from vehicle_pose.search import templates as templates_module
 from vehicle_pose.search.templates import TemplateGrid, ViewTemplates, match, turn_to
 
 GRID = TemplateGrid(azimuth_step=30.0, elevations=(8.0,), distances=(4.0,), points=128)
@@ -67,15 +68,20 @@ def test_the_true_view_matches_best_at_its_place_and_scale(sedan, renderer, temp
     assert placed.cost[best, 0] < 0.8 * min(placed.cost[3, 0], placed.cost[5, 0])
 
 
-def test_targets_placed_one_at_a_time_give_the_same_placements(sedan, renderer, templates):
-    """With ``between`` (a deadline's check), each target is placed on its own: same arrays."""
+def test_targets_placed_a_share_at_a_time_give_the_same_placements(sedan, renderer, templates, monkeypatch):
+    """With ``between`` (a deadline's check), each target is placed on its own, a share of the
+    templates at a time, ``between`` heard after each share: the same arrays."""
     photo, _ = _photo(sedan, renderer, 4, templates, 260.0, 170.0, 125.0)
     edges = photo_edges(photo)
     targets = [(0.0, 0.0, 319.0, 239.0), (60.0, 50.0, 280.0, 200.0), (100.0, 70.0, 240.0, 180.0)]
-    together = match(templates, edges.distance, 16.0, targets)
+    allowed = np.ones(len(templates), bool)
+    allowed[1] = False
+    together = match(templates, edges.distance, 16.0, targets, allowed=allowed)
+    monkeypatch.setattr(templates_module, "_SHARE", 3)
     calls: list[int] = []
-    apart = match(templates, edges.distance, 16.0, targets, between=lambda: calls.append(1))
-    assert len(calls) == len(targets)
+    apart = match(templates, edges.distance, 16.0, targets, allowed=allowed, between=lambda: calls.append(1))
+    assert len(calls) == len(targets) * -(-(len(templates) - 1) // 3)
+    assert np.all(np.isinf(apart.cost[1]))
     for name in ("cost", "focal", "u", "v"):
         np.testing.assert_array_equal(getattr(together, name), getattr(apart, name))
 
