@@ -196,6 +196,15 @@ class Frame:
         return self.full(self.labels > 0)
 
 
+def _release_framebuffer(fbo: moderngl.Framebuffer) -> None:
+    """Free a framebuffer and its renderbuffers (releasing the framebuffer alone keeps them)."""
+    attachments = [*fbo.color_attachments, fbo.depth_attachment]
+    fbo.release()
+    for attachment in attachments:
+        if attachment is not None:
+            attachment.release()
+
+
 class Renderer:
     """Renders model attributes for any camera; owns GPU buffers for recently used meshes.
 
@@ -245,7 +254,7 @@ class Renderer:
             # Keep the framebuffer bound last (the most recent entry): creating a framebuffer
             # rebinds the previous one, which must still exist.
             while len(self._fbos) >= 4:
-                self._fbos.pop(next(iter(self._fbos))).release()
+                _release_framebuffer(self._fbos.pop(next(iter(self._fbos))))
             colour = [self.ctx.renderbuffer((width, height), 4, dtype="f4")] if attributes else []
             fbo = self.ctx.framebuffer(
                 color_attachments=[*colour, self.ctx.renderbuffer((width, height), 1, dtype=label_dtype)],
@@ -352,7 +361,7 @@ class Renderer:
             gpu.release()
         self._meshes.clear()
         for fbo in self._fbos.values():
-            fbo.release()
+            _release_framebuffer(fbo)
         self._fbos.clear()
         self.program.release()
         for program in self._programs.values():
