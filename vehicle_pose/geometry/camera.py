@@ -86,12 +86,6 @@ class Camera:
         """Principal point (cx, cy) in pixels."""
         return self.K[:2, 2].copy()
 
-    @property
-    def eye(self) -> FloatArray:
-        """The camera's position (its centre of projection) in mesh coordinates, ``-R^T t``."""
-        out: FloatArray = -self.R.T @ self.t
-        return out
-
     def to_camera(self, points: npt.ArrayLike) -> FloatArray:
         """Mesh-frame points (N, 3) to camera-frame points (N, 3)."""
         return np.asarray(points, dtype=np.float64) @ self.R.T + self.t

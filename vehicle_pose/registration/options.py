@@ -226,10 +226,6 @@ class Structure(_Group):
     sphere_without_box: bool = option(True, "with a start camera and no box, where the shading is not credible: "
                                       "the pose found by the view-sphere search narrowed to the views near the "
                                       "start (search.sphere_spread)")
-    contours: bool = option(False, "the structure's searches score the model's sparse contour model, projected, "
-                            "instead of rendering each pose (vehicle_pose.search.contours)")
-    sphere_box: bool = option(False, "with a start camera and no box, after the narrowed view-sphere search: the "
-                              "structure's anchored search from the start in the box of the search's pose")
     polish_evaluations: int = option(200, "evaluations of each coarse level of the shading fit that polishes a "
                                      "pose found without a start camera", low=20, high=5000)
     shading_polish: float = option(0.45, "loss over its maximum of the edges' pose up to which the shading fit "

@@ -25,7 +25,7 @@ from vehicle_pose.registration.hypotheses import photo_pose
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
-from vehicle_pose.registration.sphere import _seen_box, edge_evidence, sphere_fit, sphere_pose, sphere_search
+from vehicle_pose.registration.sphere import edge_evidence, sphere_fit, sphere_pose, sphere_search
 from vehicle_pose.registration.structure import find_structure, structure_fit
 from vehicle_pose.render.parts import part_map
 from vehicle_pose.render.renderer import Renderer
@@ -207,13 +207,6 @@ def register(
                 grabcut_seconds += found.grabcut_seconds
                 listed = near.listed()
                 spent.append(found)
-                seen = _seen_box(found.camera, model, 4.0) if st.sphere_box else None
-                if seen is not None:
-                    structure = find_structure(work, model, found.camera,
-                                               seen, options, renderer, optimizer, progress)
-                    timings["structure"] = structure.seconds
-                    found = structure_fit(work, model, structure, found, options, renderer)
-                    spent.append(found)
         levels = found.levels
         checks = (fit_checks(work, model, found, None, options.color, renderer)
                   | edge_evidence(work, model, found.camera, options, renderer) | {"hinted": 1.0})

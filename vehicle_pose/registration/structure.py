@@ -51,7 +51,6 @@ from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import silhouette
 from vehicle_pose.render.renderer import Renderer
-from vehicle_pose.search.contours import ContourGrid, contour_model
 from vehicle_pose.search.optimize import CrossEntropy, Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow, fit_to_box
 
@@ -129,27 +128,20 @@ class StructureCost:
     """The chamfer of ``mesh``'s edges against the photo's (truncated at ``tau`` of the diagonal,
     creases as ``options.terms`` says), plus ``box_weight`` times the box term of ``points``
     when a ``box`` is given; called with a camera for the photo's size. ``progress`` is told
-    every 20 calls, as ``stage``. With ``contours`` (the model ``mesh`` is a level of), the
-    model's edges are its sparse contour model's (:mod:`~vehicle_pose.search.contours`),
-    projected without a render."""
+    every 20 calls, as ``stage``."""
 
     def __init__(self, image: npt.NDArray[np.uint8], mesh: Mesh, renderer: Renderer, options: RegistrationOptions,
                  *, tau: float, box: Box | None = None, points: FloatArray | None = None,
-                 progress: Progress | None = None, stage: str = "", contours: VehicleModel | None = None) -> None:
+                 progress: Progress | None = None, stage: str = "") -> None:
         if box is not None and points is None:
             raise ValueError("the box term needs the model's points")
         self.edges = EdgeLoss(image, tau=tau, crease=options.terms.edge_crease)
         self.mesh, self.renderer, self.box, self.box_points = mesh, renderer, box, points
         self.terms = options.terms
         self.progress, self.stage, self.count = progress, stage, 0
-        self.contours = None if contours is None else contour_model(
-            contours, options.pyramid.min_faces, renderer, ContourGrid(crease=options.terms.edge_crease))
 
     def __call__(self, cam: Camera) -> float:
-        if self.contours is not None:
-            value = self.contours.cost(cam, self.edges.edges.distance, self.edges.tau, self.renderer)
-        else:
-            value = self.edges(self.renderer.render(self.mesh, cam))
+        value = self.edges(self.renderer.render(self.mesh, cam))
         if self.box is not None and self.box_points is not None and self.terms.box_weight > 0:
             value += self.terms.box_weight * box_overflow(cam, self.box_points, self.box, self.terms.box_tolerance,
                                                           self.terms.box_shortfall)
@@ -212,9 +204,8 @@ def find_structure(
     mesh = model.exterior(options.pyramid.min_faces, renderer)
 
     anchored = BoxAnchoredParams(ref, level_box, points, centre)
-    sparse = model if st.contours else None
     objective = StructureCost(image, mesh, renderer, options, tau=st.anchor_tau, progress=progress,
-                              stage=f"structure anchored ({w}x{h})", contours=sparse)
+                              stage=f"structure anchored ({w}x{h})")
     # The first generation's spread: the start's rotation error (5-15 degrees for a rough
     # start) about the image's horizontal and vertical axes, half that about the optical axis
     # (photos are mostly level), and a factor of two either way in focal length.
@@ -236,7 +227,7 @@ def find_structure(
 
     free = ViewParams(camera, centre, options.probes.dolly_pivot * model.mesh.sphere[1])
     refine = StructureCost(image, mesh, renderer, options, tau=st.structure_tau, box=level_box, points=points,
-                           progress=progress, stage=f"structure refined ({w}x{h})", contours=sparse)
+                           progress=progress, stage=f"structure refined ({w}x{h})")
     res = _search(optimizer, refine, free, free.start(), 0.3 * free.steps(), st.structure_evaluations)
     if res.fun < refine(camera):
         camera = free.camera(res.x)

@@ -29,7 +29,7 @@ from vehicle_pose.model.parts import COLOURS, LEGEND, VOCABULARY, face_geometry
 from vehicle_pose.render.exterior import FACE_ID_FRAGMENT_SHADER, FACE_ID_VERTEX_SHADER
 from vehicle_pose.render.renderer import Renderer, clip_planes, projection_matrix, uniform
 
-__all__ = ["PartMap", "PartView", "face_ids", "part_map", "palette"]
+__all__ = ["PartMap", "PartView", "part_map", "palette"]
 
 MAX_SIZE = 1600
 """The longest side (pixels) the part map is drawn at; larger photos get it enlarged."""
@@ -109,7 +109,7 @@ def _soup(mesh: Mesh) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64],
     return found
 
 
-def face_ids(renderer: Renderer, mesh: Mesh, camera: Camera) -> npt.NDArray[np.int64]:
+def _face_ids(renderer: Renderer, mesh: Mesh, camera: Camera) -> npt.NDArray[np.int64]:
     """The face (1-based; 0: none) each pixel of ``camera``'s image shows."""
     W, H = camera.width, camera.height
     planes = clip_planes(mesh, camera)
@@ -168,7 +168,7 @@ def part_map(model: VehicleModel, camera: Camera, renderer: Renderer, *, max_siz
     w, h = max(1, round(W * s)), max(1, round(H * s))
     cam = camera if (w, h) == (W, H) else camera.scaled(w, h)
     labels = model.part_labels()
-    ids = face_ids(renderer, model.mesh, cam)
+    ids = _face_ids(renderer, model.mesh, cam)
     _, normals, areas = _soup(model.mesh)
     seen = ids > 0
     face = ids[seen] - 1
