@@ -15,6 +15,7 @@ from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.model.parts import (
     LEGEND,
     VOCABULARY,
+    face_geometry,
     label_faces,
     model_frame,
     name_part,
@@ -157,6 +158,33 @@ def test_a_mesh_that_names_nothing_is_partitioned_and_marked_estimated(sedan):
     for part in ("hood", "roof", "trunk", "front_bumper", "front_door_left", "rear_quarter_right", "wheel_front_left",
                  "headlamp_right", "taillamp_left", "windscreen", "front_door_window_left"):
         assert (names == part).sum() > 0, part
+
+
+def test_glass_facing_up_is_a_side_window_beside_the_roof_and_the_roof_over_its_middle(sedan):
+    """The sedan's glass curves in under the roof's edge, facing up at its top: those faces are
+    the side windows' (the geometric partition called them roof). The roof's own faces facing up
+    over the middle half of the width, made glass (a glass roof), are the roof."""
+    anonymous = Mesh(tuple(replace(p, name=f"mesh{k}") for k, p in enumerate(sedan.mesh.parts)))
+    labels = label_faces(anonymous, sedan.info.up, sedan.wheels)
+    frame = model_frame(sedan.info.up, sedan.wheels)
+    tris, normals, _, owner = face_geometry(anonymous)
+    centres, up = frame.local(tris.mean(1)), np.abs(frame.turn(normals)[:, 2]) > 0.9
+    kinds = np.array([p.kind for p in anonymous.parts])[owner]
+    glass = kinds == "glass"
+    middle = np.abs(centres[:, 1]) < 0.5 * np.abs(centres[:, 1]).max()  # the middle half of the width
+    beside = glass & up & ~middle
+    assert beside.sum() >= 4
+    names = np.array([VOCABULARY[k - 1] for k in labels.labels])
+    assert all(name.endswith(("_window_left", "_window_right")) for name in names[beside])
+    body = int(np.flatnonzero([p.kind == "body" for p in anonymous.parts])[0])
+    start = int(np.flatnonzero(owner == body)[0])
+    span = slice(start, start + len(anonymous.parts[body].faces))
+    roof = (names[span] == "roof") & up[span] & middle[span]
+    assert roof.sum() >= 4
+    part = anonymous.parts[body]
+    pane = replace(part, name="mesh-pane", kind="glass", faces=part.faces[roof])
+    roofed = label_faces(Mesh((*anonymous.parts, pane)), sedan.info.up, sedan.wheels)
+    assert (roofed.labels[-int(roof.sum()):] == LEGEND["roof"]).all()
 
 
 def test_a_door_named_without_a_side_is_placed_by_its_faces(sedan):

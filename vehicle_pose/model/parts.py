@@ -45,7 +45,7 @@ __all__ = ["LABELLING", "VOCABULARY", "LEGEND", "COLOURS", "SYNONYMS", "PartLabe
            "geometric_labels", "name_part", "model_frame", "part_index", "read_part_file", "part_file_text",
            "ListedParts"]
 
-LABELLING = 2
+LABELLING = 3
 """Version of the labelling; raise it whenever the labels of a mesh change (prepared models
 keep their labels under it)."""
 
@@ -254,11 +254,15 @@ def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], side: np
     rear_door = (c[:, 0] < frame.door_split) & (c[:, 0] >= frame.rear_axle + frame.arch)
     out[front_door] = [f"front_door_window_{sd}" for sd in side[front_door]]
     out[rear_door] = [f"rear_door_window_{sd}" for sd in side[rear_door]]
-    facing = np.abs(n[:, 1]) < 0.6  # not a side window: the glass faces forward, back or up
+    up = n[:, 2] > 0.9
+    # Glass facing up over the middle half of the car's width is a glass roof; beside it, the
+    # top of a side window curving in under the roof's edge.
+    central = np.abs(c[:, 1]) < 0.5 * np.max(np.abs(c[:, 1]))
+    facing = (np.abs(n[:, 1]) < 0.6) & ~(up & ~central)  # the glass faces forward, back or up
     mid = 0.5 * (s.cabin[0] + s.cabin[1])
     out[facing & (c[:, 0] >= mid)] = "windscreen"
     out[facing & (c[:, 0] < mid)] = "rear_window"
-    out[facing & (n[:, 2] > 0.9)] = "roof"
+    out[facing & up] = "roof"
     return out
 
 
