@@ -258,7 +258,7 @@ def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], side: np
     # Glass facing up over the middle half of the car's width is a glass roof; beside it, the
     # top of a side window curving in under the roof's edge.
     central = np.abs(c[:, 1]) < 0.5 * np.max(np.abs(c[:, 1]))
-    facing = (np.abs(n[:, 1]) < 0.6) & ~(up & ~central)  # the glass faces forward, back or up
+    facing = (np.abs(n[:, 1]) < 0.6) & (central | ~up)  # the glass faces forward, back or up
     mid = 0.5 * (s.cabin[0] + s.cabin[1])
     out[facing & (c[:, 0] >= mid)] = "windscreen"
     out[facing & (c[:, 0] < mid)] = "rear_window"

@@ -407,7 +407,7 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
             part = np.zeros_like(mask)
             part[share] = True
             b, w = _match(templates.points, templates.bins, templates.offsets, templates.boxes, part, costs,
-                          float(min_seen), boxes[k:k + 1], factors.astype(np.float64), float(step),
+                          float(min_seen), boxes[k:k + 1], factors, float(step),
                           float(min_iou), float(cx), float(cy), float(stride))
             best[share, k], where[share, k] = b[share, 0], w[share, 0]
             if between is not None:
