@@ -43,3 +43,27 @@ def test_a_screen_ends_the_fit_after_its_first_level_only_where_the_loss_is_abov
     assert screened.screened and len(screened.levels) == 1
     assert screened.levels[0].width == sizes[0][0]
     assert screened.foreground.shape == photo.shape[:2]
+
+
+def test_a_spread_search_runs_beside_the_first_level_and_its_runner_up_is_probed_at_the_second(sedan, renderer):
+    truth = view(sedan, 40.0, 12.0, width=320, height=240, focal=450.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)
+    start = perturbed(truth, 3, degrees=8.0)
+    optimizer = NelderMeadRestarts()
+    plain_options = RegistrationOptions.from_flat(max_evaluations=60, fine_evaluations=30, focal_starts=(),
+                                                  focal_evaluations=20, spread_evaluations=0)
+    options = plain_options.replace(spread_evaluations=50)
+    plain = fit(photo, sedan, start, plain_options, FitPlan.hinted(plain_options), renderer, optimizer)
+    spread = fit(photo, sedan, start, options, FitPlan.hinted(options), renderer, optimizer)
+    assert FitPlan.hinted(options).spread == 50 and FitPlan.hinted(plain_options).spread == 0
+    assert len(spread.levels) == len(plain.levels) == 2
+    # The first level adds the evolution strategy's evaluations (at most its budget) to the
+    # simplex's, which runs as before; the second searches the runner-up as well.
+    extra = spread.levels[0].evaluations - plain.levels[0].evaluations
+    assert 20 <= extra <= 50
+    assert spread.levels[1].evaluations >= plain.levels[1].evaluations + 1
+    # A fit that its screen ends after the first level does not spend the spread search on it.
+    screened = fit(photo, sedan, start, options, FitPlan.hinted(options, screen=0.0), renderer, optimizer)
+    plain_screened = fit(photo, sedan, start, plain_options, FitPlan.hinted(plain_options, screen=0.0), renderer,
+                         optimizer)
+    assert screened.screened and screened.levels[0].evaluations == plain_screened.levels[0].evaluations

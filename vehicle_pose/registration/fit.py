@@ -2,7 +2,9 @@
 
 Each level renders a level of detail of the model at a reduced photo and minimises the loss
 (plus the edge and box terms) over the search coordinates; between levels GrabCut runs again,
-seeded by the pose found; the second level also probes dolly zooms of the first level's pose
+seeded by the pose found; from a start camera the first level runs an evolution strategy beside
+the simplex (``docs/decisions/0025-spread-first-level.md``), and the second level also probes
+dolly zooms of the first level's pose and the first level's runner-up
 (``docs/decisions/0005-perspective-probes.md``). What a fit runs (levels, budget, terms) is a
 :class:`FitPlan`, chosen by the stage that calls it.
 """
@@ -20,17 +22,18 @@ from vehicle_pose.errors import CameraError, PoseError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.parametrize import Parametrization, SearchFrame, ViewParams, make_parametrization
 from vehicle_pose.geometry.pose import Side, visible_side
-from vehicle_pose.loss.alternatives import make_loss
+from vehicle_pose.loss.alternatives import BoundLoss, make_loss
 from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.loss.invariant import make_target
 from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.photo import is_gray, resized, resized_mask
 from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.options import Pyramid, RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import box_mask, doubt_weights, first_foreground, resegment, silhouette
 from vehicle_pose.render.renderer import Renderer
-from vehicle_pose.search.optimize import Optimizer, OptimizeResult
+from vehicle_pose.search.optimize import CMAES, Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow
 
 __all__ = ["Progress", "FitPlan", "Fit", "fit", "level_sizes", "face_budget", "probe_factors", "search_frame",
@@ -63,13 +66,14 @@ class FitPlan:
     step_scale: float = 1.0
     focal_band: tuple[float, float] | None = None
     screen: float | None = None
+    spread: int = 0
 
     @classmethod
     def hinted(cls, options: RegistrationOptions, screen: float | None = None) -> FitPlan:
         """The registration from a client's start camera: every option as given."""
         seg = options.segmentation
         return cls(options.pyramid.coarse_to_fine, options.budgets.max_evaluations, seg.grabcut and seg.resegment,
-                   options.terms.edge_weight, screen=screen)
+                   options.terms.edge_weight, screen=screen, spread=options.budgets.spread_evaluations)
 
 
 @dataclass
@@ -123,6 +127,15 @@ def probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
     if not lo <= camera.focal <= hi:
         factors.append(float(np.sqrt(lo * hi)) / camera.focal)
     return factors
+
+
+def _screened_out(run: tuple[OptimizeResult, Parametrization], loss_fn: BoundLoss, renderer: Renderer, mesh: Mesh,
+                  work: npt.NDArray[np.uint8], color: bool, screen: float | None) -> bool:
+    """Whether ``run``'s pose is above the plan's ``screen`` (the fit will end there)."""
+    if screen is None:
+        return False
+    res, params = run
+    return loss_share(float(loss_fn(renderer.render(mesh, params.camera(res.x)))), work, color) > screen
 
 
 def search_frame(model: VehicleModel, side: Side, pivot: float,
@@ -185,6 +198,7 @@ def fit(
     max_pixels = options.pyramid.max_pixels
     fine = min(1.0, float(np.sqrt(max_pixels / area))) if max_pixels > 0 else 1.0
     sizes = level_sizes(max(8, round(Wf * fine)), max(8, round(Hf * fine)), options.pyramid, plan.coarse_to_fine)
+    runner_up: Camera | None = None
     for li, (w, h) in enumerate(sizes):
         t = time.perf_counter()
         # Faces hidden from every outside view (the cabin of many CAD cars) are dropped: they
@@ -203,7 +217,8 @@ def fit(
             level_box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
         counter = [0]
 
-        def search(reference: Camera, budget: int) -> tuple[OptimizeResult, Parametrization]:
+        def search(reference: Camera, budget: int,
+                   how: Optimizer = optimizer) -> tuple[OptimizeResult, Parametrization]:
             params = make_parametrization(options.parametrization, reference.scaled(w, h), frame)
             try:
                 x0 = params.start()
@@ -228,22 +243,39 @@ def fit(
                 return value
 
             steps = params.steps() * plan.step_scale * 0.4**li
-            return optimizer(objective, x0, steps, max_evaluations=budget), params
+            return how(objective, x0, steps, max_evaluations=budget), params
 
         budget = budgets.fine_evaluations if li == len(sizes) - 1 and li > 0 else plan.evaluations
         runs = [search(camera, budget)]
-        if li == 1 and options.probes.focal_starts and plan.focal_band is None:
+        if li == 0 and plan.spread > 0 and len(sizes) > 1 and plan.focal_band is None and not _screened_out(
+                runs[0], loss_fn, renderer, mesh, work, options.color, plan.screen):
+            # A rough start (5-15 degrees, the focal length a third off) can lie beyond the
+            # simplex's basin, most of all where the frame cuts the car: an evolution strategy
+            # spread about as far as the start may be off searches beside it, where evaluations
+            # are cheapest. The first level's objective is too coarse to choose between the two
+            # (docs/decisions/0025-spread-first-level.md): the loser is probed at the second.
+            spread: Optimizer = CMAES(sigma=options.probes.start_spread)
+            runs.append(search(camera, plan.spread, spread if deadline is None else deadline.guard(spread)))
+        starts: list[Camera] = []
+        if li == 1 and plan.focal_band is None:
             # The second level also probes dolly zooms of the first level's pose, on the same
-            # mask (the perspective is what a simplex corrects least); a probe that beats the
-            # main search is searched on.
-            view = ViewParams.about(camera, frame)
-            probes = [search(view.dolly_zoom(f), budgets.focal_evaluations) for f in probe_factors(camera, options)]
+            # mask (the perspective is what a simplex corrects least), and the first level's
+            # runner-up; a probe that beats the main search is searched on.
+            if options.probes.focal_starts:
+                view = ViewParams.about(camera, frame)
+                starts = [view.dolly_zoom(f) for f in probe_factors(camera, options)]
+            starts += [runner_up] if runner_up is not None else []
+        if starts:
+            probes = [search(start, budgets.focal_evaluations) for start in starts]
             best_probe = min(probes, key=lambda e: e[0].fun)
             runs += probes
             if best_probe[0].fun < runs[0][0].fun * (1.0 + options.probes.probe_margin):
                 runs.append(search(best_probe[1].camera(best_probe[0].x).scaled(Wf, Hf),
                                    plan.evaluations - budgets.focal_evaluations))
         res, params = min(runs, key=lambda e: e[0].fun)
+        if li == 0 and len(runs) > 1:
+            other, other_params = max(runs, key=lambda e: e[0].fun)
+            runner_up = other_params.camera(other.x).scaled(Wf, Hf)
         if len(runs) > 1:
             res = replace(res, evaluations=sum(r.evaluations for r, _ in runs),
                           restarts=sum(r.restarts for r, _ in runs))

@@ -238,6 +238,8 @@ class Budgets(_Group):
 
     ``max_evaluations`` per level, but ``fine_evaluations`` at the working size after coarser
     levels (it starts within a pixel or two); ``focal_evaluations`` per perspective probe;
+    ``spread_evaluations`` for the evolution strategy of a fit from a start camera's first level
+    (0: none; ``docs/decisions/0025-spread-first-level.md``);
     ``screen_evaluations`` per screened start and ``refine_evaluations`` per refined pose of the
     search without a start camera.
     """
@@ -245,6 +247,8 @@ class Budgets(_Group):
     max_evaluations: int = option(400, "loss evaluations per level", low=20, high=5000, public=True)
     fine_evaluations: int = option(250, "loss evaluations at the working size after coarser levels", low=1)
     focal_evaluations: int = option(150, "loss evaluations per perspective probe", low=1)
+    spread_evaluations: int = option(500, "from a start camera: loss evaluations of the first level's evolution "
+                                     "strategy (0: none)", low=0)
     screen_evaluations: int = option(300, "without a start camera: loss evaluations per screened start", low=1)
     refine_evaluations: int = option(1000, "without a start camera: loss evaluations per refined pose", low=1)
 
@@ -256,7 +260,10 @@ class Probes(_Group):
     The second level also searches from dolly zooms of the first level's pose by
     ``focal_starts`` (and, when its focal length is outside ``focal_range`` image widths, one to
     the range's geometric middle), on the same mask; a probe that ends below the main search's
-    loss times ``1 + probe_margin`` is searched on. ``dolly_pivot`` is where the view
+    loss times ``1 + probe_margin`` is searched on. From a start camera, the first level also runs
+    an evolution strategy from the start with a spread of ``start_spread`` first-level simplex
+    steps (about how far a rough start is off), and its runner-up is probed at the second level
+    as well (``docs/decisions/0025-spread-first-level.md``). ``dolly_pivot`` is where the view
     coordinates' focal length keeps the image size (bounding-sphere radii in front of the
     centre, ``docs/decisions/0003-view-coordinates.md``).
     """
@@ -266,6 +273,8 @@ class Probes(_Group):
     focal_range: tuple[float, float] = option((0.7, 4.0), "focal lengths of most photos (image widths)", low=1e-3)
     dolly_pivot: float = option(0.5, "dolly zoom pivot (bounding-sphere radii in front of the centre)", low=0.0)
     probe_margin: float = option(0.1, "a probe within this share of the main search's loss is searched on", low=0.0)
+    start_spread: float = option(2.0, "spread of the first level's evolution strategy (first-level simplex steps)",
+                                 low=1e-3)
 
 
 @dataclass(frozen=True)
