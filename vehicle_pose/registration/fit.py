@@ -75,6 +75,10 @@ class FitPlan:
         return cls(options.pyramid.coarse_to_fine, options.budgets.max_evaluations, seg.grabcut and seg.resegment,
                    options.terms.edge_weight, screen=screen, spread=options.budgets.spread_evaluations)
 
+    def screens(self, loss: float, work: npt.NDArray[np.uint8], color: bool) -> bool:
+        """Whether a first level ending at ``loss`` ends the fit (above the ``screen``)."""
+        return self.screen is not None and loss_share(loss, work, color) > self.screen
+
 
 @dataclass
 class Fit:
@@ -129,13 +133,14 @@ def probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
     return factors
 
 
-def _screened_out(run: tuple[OptimizeResult, Parametrization], loss_fn: BoundLoss, renderer: Renderer, mesh: Mesh,
-                  work: npt.NDArray[np.uint8], color: bool, screen: float | None) -> bool:
-    """Whether ``run``'s pose is above the plan's ``screen`` (the fit will end there)."""
-    if screen is None:
+def _screened_out(plan: FitPlan, run: tuple[OptimizeResult, Parametrization], loss_fn: BoundLoss,
+                  renderer: Renderer, mesh: Mesh, work: npt.NDArray[np.uint8], color: bool) -> bool:
+    """Whether ``run``'s pose is above the plan's screen (the fit will end there); renders it
+    only where the plan has a screen."""
+    if plan.screen is None:
         return False
     res, params = run
-    return loss_share(float(loss_fn(renderer.render(mesh, params.camera(res.x)))), work, color) > screen
+    return plan.screens(float(loss_fn(renderer.render(mesh, params.camera(res.x)))), work, color)
 
 
 def search_frame(model: VehicleModel, side: Side, pivot: float,
@@ -248,7 +253,7 @@ def fit(
         budget = budgets.fine_evaluations if li == len(sizes) - 1 and li > 0 else plan.evaluations
         runs = [search(camera, budget)]
         if li == 0 and plan.spread > 0 and len(sizes) > 1 and plan.focal_band is None and not _screened_out(
-                runs[0], loss_fn, renderer, mesh, work, options.color, plan.screen):
+                plan, runs[0], loss_fn, renderer, mesh, work, options.color):
             # A rough start (5-15 degrees, the focal length a third off) can lie beyond the
             # simplex's basin, most of all where the frame cuts the car: an evolution strategy
             # spread about as far as the start may be off searches beside it, where evaluations
@@ -289,8 +294,7 @@ def fit(
             deadline.offer(camera, "shading")
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
-        if (plan.screen is not None and li == 0 and len(sizes) > 1
-                and loss_share(loss, work, options.color) > plan.screen):
+        if li == 0 and len(sizes) > 1 and plan.screens(loss, work, options.color):
             return Fit(camera, levels, foreground, grabcut_seconds, screened=True)
         if segment_again and li < len(sizes) - 1:
             t = time.perf_counter()
