@@ -5,9 +5,11 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import trimesh
 
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import (
     LOD_AGREEMENT,
     VehicleModel,
@@ -74,3 +76,36 @@ def test_decimation_keeps_small_parts_whole_and_takes_faces_from_the_body(sedan)
             assert len(part.faces) == len(full.faces)
     body = [p for p in coarse.parts if p.kind == "body"][0]
     assert len(body.faces) < len([p for p in sedan.mesh.parts if p.kind == "body"][0].faces) / 2
+
+
+def test_the_extreme_points_bound_every_projection_of_the_samples(sedan):
+    samples = sedan.mesh.sample_points(1000)
+    extreme = sedan.mesh.extreme_points(1000)
+    assert 4 <= len(extreme) < len(samples) // 4
+    assert sedan.mesh.extreme_points(1000) is extreme  # kept
+    centre, radius = sedan.mesh.sphere
+    rng = np.random.default_rng(0)
+    behind = 0
+    for _ in range(200):
+        R = cv2.Rodrigues(rng.normal(0.0, 2.0, 3))[0]
+        t = -R @ centre + np.array([*rng.normal(0.0, radius, 2), rng.uniform(-1.0, 6.0) * radius])
+        cam = Camera(np.array([[700.0, 0.0, 320.0], [0.0, 700.0, 240.0], [0.0, 0.0, 1.0]]), R, t, 640, 480)
+        uv, ue = cam.project(samples), cam.project(extreme)
+        # A sample behind the camera exactly when an extreme point is; else the same box.
+        assert np.all(np.isfinite(uv)) == np.all(np.isfinite(ue))
+        if not np.all(np.isfinite(uv)):
+            behind += 1
+            continue
+        np.testing.assert_array_equal(uv.min(0), ue.min(0))
+        np.testing.assert_array_equal(uv.max(0), ue.max(0))
+    assert 20 < behind < 150
+
+
+def test_a_flat_mesh_keeps_all_its_samples_as_extreme_points():
+    xy = np.random.default_rng(1).uniform(-1.0, 1.0, (50, 2))
+    vertices = np.column_stack([xy, np.zeros(50)])
+    faces = np.array([[i, i + 1, i + 2] for i in range(48)], np.uint32)
+    part = Part("plate", "body", vertices, np.tile(np.float32([0.0, 0.0, 1.0]), (50, 1)), faces,
+                np.full(50, 0.5, np.float32))
+    mesh = Mesh((part,))
+    np.testing.assert_array_equal(mesh.extreme_points(20), mesh.sample_points(20))

@@ -46,6 +46,35 @@ def test_a_screen_ends_the_fit_after_its_first_level_only_where_the_loss_is_abov
     assert screened.foreground.shape == photo.shape[:2]
 
 
+def test_a_first_level_still_above_its_screen_after_screen_after_evaluations_ends_there(sedan, renderer):
+    truth = view(sedan, 40.0, 12.0, width=320, height=240, focal=450.0)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=2)
+    start = perturbed(truth, 2, degrees=6.0)
+    options = RegistrationOptions.from_flat(max_evaluations=120, fine_evaluations=30, focal_starts=(),
+                                            spread_evaluations=0, screen_after=40)
+    late = options.replace(screen_after=0)
+    optimizer = NelderMeadRestarts()
+    # Above the screen after 40 evaluations: the fit ends there, on the best pose so far.
+    early = fit(photo, sedan, start, options, FitPlan.hinted(options, screen=0.0), renderer, optimizer)
+    whole = fit(photo, sedan, start, late, FitPlan.hinted(late, screen=0.0), renderer, optimizer)
+    assert early.screened and whole.screened and len(early.levels) == len(whole.levels) == 1
+    assert early.levels[0].evaluations == 40 < whole.levels[0].evaluations
+    assert early.levels[0].objective >= whole.levels[0].objective
+    # Below it (a render the shading explains), the check changes nothing: every level as before.
+    kept = fit(photo, sedan, start, options, FitPlan.hinted(options, screen=0.3), renderer, optimizer)
+    plain = fit(photo, sedan, start, late, FitPlan.hinted(late, screen=0.3), renderer, optimizer)
+    assert not kept.screened and len(kept.levels) == len(plain.levels) > 1
+    assert [lv.objective for lv in kept.levels] == [lv.objective for lv in plain.levels]
+    np.testing.assert_array_equal(kept.camera.t, plain.camera.t)
+    # A photo small enough for one level is screened the same way: the rest of it is spared.
+    small = view(sedan, 40.0, 12.0, width=150, height=112, focal=210.0)
+    tiny, _ = synthesize(sedan.mesh, small, renderer=renderer, seed=2)
+    assert len(level_sizes(150, 112, options.pyramid, True)) == 1
+    one = fit(tiny, sedan, perturbed(small, 2, degrees=6.0), options, FitPlan.hinted(options, screen=0.0), renderer,
+              optimizer)
+    assert one.screened and one.levels[0].evaluations == 40
+
+
 def test_a_spread_search_runs_beside_the_first_level_and_its_runner_up_is_probed_at_the_second(sedan, renderer):
     truth = view(sedan, 40.0, 12.0, width=320, height=240, focal=450.0)
     photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)

@@ -138,6 +138,30 @@ class Mesh:
             return v
         return v[np.random.default_rng(seed).choice(len(v), count, replace=False)]
 
+    def extreme_points(self, count: int = 2000, seed: int = 0) -> npt.NDArray[np.float64]:
+        """The points of :meth:`sample_points` that can bound a projection of them: the vertices
+        of their convex hull (N, 3), in the samples' order; kept per ``count`` and ``seed``.
+
+        A camera projects a point to ``u = a.p / c.p``, a linear-fractional function, whose
+        largest and smallest values over a convex polytope in front of the camera lie at its
+        vertices; and a sample lies behind the camera exactly when a vertex does (the depth is
+        linear). So the box of the samples' projection, and whether it exists, is the same
+        computed from these points: 40-80 of 1000 for a car, a fraction of the cost for the
+        searches that fit a camera to a box at every sample.
+        """
+        cache: dict[tuple[int, int], npt.NDArray[np.float64]] = self.__dict__.setdefault("_extreme", {})
+        points = cache.get((count, seed))
+        if points is None:
+            from scipy.spatial import ConvexHull, QhullError
+
+            samples = self.sample_points(count, seed)
+            try:
+                points = samples[np.sort(ConvexHull(samples).vertices)]
+            except (QhullError, ValueError):  # flat or too few samples: no hull to stand for them
+                points = samples
+            cache[(count, seed)] = points
+        return points
+
     def decimated(self, max_faces: int) -> Mesh:
         """A coarser copy with at most about ``max_faces`` faces; textures folded into albedo.
 

@@ -45,6 +45,10 @@ Progress = Callable[[str, int, float], None]
 _INVALID = 10.0  # the objective of coordinates that give no camera
 
 
+class _Screened(Exception):
+    """Raised by a first level's objective whose best pose is still above the plan's screen."""
+
+
 @dataclass(frozen=True)
 class FitPlan:
     """What one fit runs.
@@ -56,7 +60,9 @@ class FitPlan:
     high) the fit may reach (a lens known from the photo's EXIF), None for any; with a band the
     perspective probes do not run; ``screen``: the loss over its maximum (:func:`loss_share`)
     above which the fit ends after its first level, where the shading does not explain the
-    photo even coarsely and the caller has another way to the pose, None to run every level.
+    photo even coarsely and the caller has another way to the pose, None to run every level;
+    ``screen_after``: with a screen, the first level's evaluations after which a pose still
+    above it ends the fit there (0: only at the level's end).
     """
 
     coarse_to_fine: bool
@@ -67,13 +73,15 @@ class FitPlan:
     focal_band: tuple[float, float] | None = None
     screen: float | None = None
     spread: int = 0
+    screen_after: int = 0
 
     @classmethod
     def hinted(cls, options: RegistrationOptions, screen: float | None = None) -> FitPlan:
         """The registration from a client's start camera: every option as given."""
         seg = options.segmentation
         return cls(options.pyramid.coarse_to_fine, options.budgets.max_evaluations, seg.grabcut and seg.resegment,
-                   options.terms.edge_weight, screen=screen, spread=options.budgets.spread_evaluations)
+                   options.terms.edge_weight, screen=screen, spread=options.budgets.spread_evaluations,
+                   screen_after=options.structure.screen_after)
 
     def screens(self, loss: float, work: npt.NDArray[np.uint8], color: bool) -> bool:
         """Whether a first level ending at ``loss`` ends the fit (above the ``screen``)."""
@@ -198,7 +206,7 @@ def fit(
     levels: list[LevelReport] = []
     # The box term's points, sampled once per fit and only when the term is on (the no-hint
     # chain runs a fit per screened start, without a box).
-    box_points = model.mesh.sample_points(600) if box is not None and terms.box_weight > 0 else None
+    box_points = model.mesh.extreme_points(600) if box is not None and terms.box_weight > 0 else None
     area = max(float(seed.sum()), 1.0)
     max_pixels = options.pyramid.max_pixels
     fine = min(1.0, float(np.sqrt(max_pixels / area))) if max_pixels > 0 else 1.0
@@ -221,6 +229,11 @@ def fit(
         if box is not None and box_points is not None:
             level_box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
         counter = [0]
+        # With a screen, the first level's best pose so far (its objective, loss and camera):
+        # still above the screen after ``screen_after`` evaluations, it ends the fit there.
+        screening = li == 0 and plan.screen is not None and plan.screen_after > 0
+        lowest: list[float] = [np.inf, np.inf]
+        lowest_camera: list[Camera] = []
 
         def search(reference: Camera, budget: int,
                    how: Optimizer = optimizer) -> tuple[OptimizeResult, Parametrization]:
@@ -236,7 +249,8 @@ def fit(
                 except (PoseError, CameraError):
                     return _INVALID
                 rendered = renderer.render(mesh, cam)
-                value = float(loss_fn(rendered))
+                shading = float(loss_fn(rendered))
+                value = shading
                 if edge_fn is not None:
                     value += plan.edge_weight * edge_fn(rendered)
                 if level_box is not None and box_points is not None:
@@ -245,13 +259,31 @@ def fit(
                 counter[0] += 1
                 if progress is not None and counter[0] % 20 == 0:
                     progress(stage, counter[0], value)
+                if screening:
+                    if value < lowest[0]:
+                        lowest[:] = [value, shading]
+                        lowest_camera[:] = [cam]
+                    if counter[0] == plan.screen_after and plan.screens(lowest[1], work, options.color):
+                        raise _Screened
                 return value
 
             steps = params.steps() * plan.step_scale * 0.4**li
             return how(objective, x0, steps, max_evaluations=budget), params
 
         budget = budgets.fine_evaluations if li == len(sizes) - 1 and li > 0 else plan.evaluations
-        runs = [search(camera, budget)]
+        try:
+            runs = [search(camera, budget)]
+        except _Screened:
+            # Far from explaining the photo after a quarter of the level: the rest of the
+            # level would not bring it under the screen (docs/decisions/0022-shading-screen.md).
+            camera = lowest_camera[0].scaled(Wf, Hf)
+            levels.append(LevelReport(w, h, mesh.n_faces, counter[0], 0, lowest[1], time.perf_counter() - t,
+                                      lowest[0]))
+            if deadline is not None:
+                deadline.offer(camera, "shading")
+            if progress is not None:
+                progress(stage, counter[0], lowest[0])
+            return Fit(camera, levels, foreground, grabcut_seconds, screened=True)
         if li == 0 and plan.spread > 0 and len(sizes) > 1 and plan.focal_band is None and not _screened_out(
                 plan, runs[0], loss_fn, renderer, mesh, work, options.color):
             # A rough start (5-15 degrees, the focal length a third off) can lie beyond the

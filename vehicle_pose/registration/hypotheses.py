@@ -138,7 +138,7 @@ def photo_search(
     mesh = model.exterior(options.pyramid.min_faces, renderer)
     score = MaterialInformation(work, mesh, renderer, size=options.structure.structure_size,
                                 clusters=search.photo_clusters)
-    points, centre = model.mesh.sample_points(600), model.mesh.sphere[0]
+    points, centre = model.mesh.extreme_points(600), model.mesh.sphere[0]
     cands = []
     for k, box in enumerate(boxes):
         for az in SearchGrid().azimuths:

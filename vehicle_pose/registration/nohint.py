@@ -61,7 +61,7 @@ def _window_margin(options: RegistrationOptions) -> float | None:
 
 def _projected_box(model: VehicleModel, camera: Camera) -> Box | None:
     """The box of the model's projection, None when part of it is behind the camera."""
-    uv = camera.project(model.mesh.sample_points(600))
+    uv = camera.project(model.mesh.extreme_points(600))
     if not np.all(np.isfinite(uv)):
         return None
     return float(uv[:, 0].min()), float(uv[:, 1].min()), float(uv[:, 0].max()), float(uv[:, 1].max())

@@ -193,7 +193,8 @@ class Structure(_Group):
     When the shading fit's loss over its maximum is above ``shading_trust`` (the shading model
     does not explain the photo: real paint and glass mirror their surroundings), the pose is
     found on the photo's edges instead, from the client's start (a shading fit whose first
-    level ends above ``shading_screen`` stops there: ``docs/decisions/0022-shading-screen.md``):
+    level ends above ``shading_screen``, or is still above it after ``screen_after``
+    evaluations, stops there: ``docs/decisions/0022-shading-screen.md``):
     the rotation and focal length are searched on the directional chamfer (truncated at
     ``anchor_tau`` of the diagonal) with the place and size fitted to the box, at
     ``structure_size`` pixels, by the cross-entropy method (``anchor_population`` samples a
@@ -223,6 +224,9 @@ class Structure(_Group):
     shading_screen: float = option(0.3, "with a start camera, where the structure can find the pose instead: the "
                                    "loss over its maximum at the shading fit's first level above which the fit "
                                    "ends there (at least shading_trust; 1: every level runs)", low=0.0, high=1.0)
+    screen_after: int = option(100, "where the shading fit has a screen: evaluations of its first level after which "
+                               "a loss over its maximum still above the screen ends the fit there (0: only at the "
+                               "level's end)", low=0)
     sphere_without_box: bool = option(True, "with a start camera and no box, where the shading is not credible: "
                                       "the pose found by the view-sphere search narrowed to the views near the "
                                       "start (search.sphere_spread)")

@@ -58,7 +58,7 @@ def _given_start(work: npt.NDArray[np.uint8], model: VehicleModel, init_camera: 
         # A box is far more precise than a rough pose about where the vehicle is and how
         # large it looks: the start keeps its rotation and focal length and is moved and
         # scaled to fill it (docs/decisions/0006-real-photo-terms.md).
-        start = fit_to_box(start, model.mesh.sample_points(600), model.mesh.sphere[0], rect, rounds=5, clip=True)
+        start = fit_to_box(start, model.mesh.extreme_points(600), model.mesh.sphere[0], rect, rounds=5, clip=True)
     return start
 
 

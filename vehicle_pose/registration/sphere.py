@@ -116,7 +116,7 @@ class _Cost:
         self.size = (image.shape[1], image.shape[0])
         self.mesh = model.exterior(options.pyramid.min_faces, renderer)
         self.renderer = renderer
-        self.box, self.points = box, model.mesh.sample_points(1000)
+        self.box, self.points = box, model.mesh.extreme_points(1000)
         self.terms = options.terms
         self.count = 0
 
@@ -175,7 +175,7 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
 def _seen_box(camera: Camera, model: VehicleModel, least: float) -> Box | None:
     """The box of the model's projection cut to the frame; None where a point is behind the
     camera or the box is narrower or lower than ``least`` pixels."""
-    uv = camera.project(model.mesh.sample_points(600))
+    uv = camera.project(model.mesh.extreme_points(600))
     if not np.all(np.isfinite(uv)):
         return None
     lo = np.clip(uv.min(0), 0, [camera.width - 1, camera.height - 1])

@@ -199,7 +199,7 @@ def find_structure(
     image = resized(work, w, h)
     level_box: Box = (box[0] * w / Wf, box[1] * h / Hf, box[2] * w / Wf, box[3] * h / Hf)
     ref = start.scaled(w, h)
-    points = model.mesh.sample_points(_POINTS)
+    points = model.mesh.extreme_points(_POINTS)
     centre = model.mesh.sphere[0]
     mesh = model.exterior(options.pyramid.min_faces, renderer)
 

@@ -111,11 +111,17 @@ def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box,
     pix = camera.project(anchor[None])[0]
     if not (depth > 0 and np.all(np.isfinite(pix))):
         depth, pix = float(np.linalg.norm(camera.t)), camera.centre
-    cam = camera
+    # Each round projects the points as Camera.project would, without making a camera: the
+    # rotation stays, so the points are turned once (the anchored search calls this for every
+    # sample, and the cameras cost more than the arithmetic).
+    turned = np.asarray(points, dtype=np.float64) @ R.T
+    pivot = R @ anchor
     for _ in range(rounds):
         ray = np.linalg.solve(K, np.array([pix[0], pix[1], 1.0]))
-        cam = Camera(K, R, depth * ray - R @ anchor, camera.width, camera.height)
-        uv = cam.project(points)
+        t = depth * ray - pivot
+        if not np.all(np.isfinite(t)):
+            raise CameraError("camera holds non-finite numbers")
+        uv = _projected(turned + t, K)
         if not np.all(np.isfinite(uv)):
             depth *= 2.0
             continue
@@ -127,7 +133,16 @@ def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box,
         depth *= float(np.sqrt(max(span[0], 1e-6) / bw * max(span[1], 1e-6) / bh))
         pix = pix + bc - 0.5 * (lo + hi)
     ray = np.linalg.solve(K, np.array([pix[0], pix[1], 1.0]))
-    return Camera(K, R, depth * ray - R @ anchor, camera.width, camera.height)
+    return Camera(K, R, depth * ray - pivot, camera.width, camera.height)
+
+
+def _projected(pc: FloatArray, K: FloatArray) -> FloatArray:
+    """Camera-frame points (N, 3) to pixels (N, 2), nan behind the camera (as Camera.project)."""
+    uvw = pc @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv: FloatArray = uvw[:, :2] / uvw[:, 2:3]
+    uv[pc[:, 2] <= 0] = np.nan
+    return uv
 
 
 def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, shortfall: float | None = None) -> float:
@@ -179,7 +194,7 @@ def view_camera(
     if roll:
         R = Rotation.from_euler("z", roll, degrees=True).as_matrix() @ cam.R
         cam = Camera(cam.K, R, R @ (cam.R.T @ cam.t), width, height)
-    return fit_to_box(cam, model.mesh.sample_points(600), centre, box)
+    return fit_to_box(cam, model.mesh.extreme_points(600), centre, box)
 
 
 def refocus(camera: Camera, focal: float, model: VehicleModel, box: Box) -> Camera:
@@ -188,7 +203,7 @@ def refocus(camera: Camera, focal: float, model: VehicleModel, box: Box) -> Came
     K[0, 0] *= focal / camera.K[0, 0]
     K[1, 1] *= focal / camera.K[1, 1]
     cam = Camera(K, camera.R, camera.t, camera.width, camera.height)
-    return fit_to_box(cam, model.mesh.sample_points(600), model.mesh.sphere[0], box)
+    return fit_to_box(cam, model.mesh.extreme_points(600), model.mesh.sphere[0], box)
 
 
 class _Scorer:
