@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -152,7 +153,7 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
     """The boxes the vehicle is looked for in: the client's box (the vehicle segmented in it by
     GrabCut); else the photo's frame (a claims photo is mostly the car), with a start camera the
     box of its projection first, and the regions GrabCut finds from rectangles 8-30 % inside the
-    border (one box each, those that differ). ``between`` is called before each GrabCut."""
+    border (one box each, those that differ). ``between`` is called before the GrabCuts."""
     H, W = work.shape[:2]
     if box is not None:
         return [Target(box, find_vehicle(work, rect=box).mask)]
@@ -163,10 +164,13 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
             raise PoseError("the start pose puts the model out of the photo")
         if _box_iou(b, out[0].box) < 0.8:
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
-    for border in REGION_BORDERS:
-        if between is not None:
-            between()
-        region = find_vehicle(work, border=border)
+    if between is not None:
+        between()
+    # The regions' GrabCuts are independent (each seeds its own thread's generator), and OpenCV
+    # lets go of the interpreter while it segments: they run side by side.
+    with ThreadPoolExecutor(len(REGION_BORDERS), thread_name_prefix="region") as pool:
+        regions = list(pool.map(lambda border: find_vehicle(work, border=border), REGION_BORDERS))
+    for region in regions:
         if all(_box_iou(region.box, o.box) < 0.8 for o in out):
             out.append(Target(region.box, region.mask))
     return out
