@@ -8,12 +8,15 @@ import numpy as np
 import pytest
 
 from vehicle_pose import Camera, RegistrationOptions, register
+from vehicle_pose.clock import clocked
 from vehicle_pose.loss.edges import TwoWayChamfer
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.procedural import CarSpec, build_car
+from vehicle_pose.registration.sphere import REGION_BORDERS, _regions
 from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
 from vehicle_pose.search.views import view_camera
+from vehicle_pose.segment.region import find_vehicle
 
 from helpers import projection_error
 
@@ -163,3 +166,16 @@ def test_a_photo_without_a_vehicle_is_flagged_failed(sedan, renderer):
     photo = (np.clip(background(H, W, rng), 0, 1) * 255).astype(np.uint8)
     result = register(photo, sedan, renderer=renderer)
     assert result.failed and result.confidence is not None and result.confidence < 0.5
+
+
+def test_the_regions_segmented_side_by_side_are_those_found_one_by_one(sedan, renderer):
+    truth = view_camera(sedan, 35.0, 12.0, 0.0, (60.0, 50.0, 260.0, 190.0), W, H, 1.5 * W)
+    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=4)
+    with clocked() as clock:
+        regions = _regions(photo)
+    assert clock.calls == {"grabcut": 1}  # one wait on the clock, not one call per thread
+    assert len(regions) == len(REGION_BORDERS)
+    for region, border in zip(regions, REGION_BORDERS, strict=True):
+        alone = find_vehicle(photo, border=border)
+        assert region.box == alone.box
+        np.testing.assert_array_equal(region.mask, alone.mask)

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from vehicle_pose.clock import timed
 from vehicle_pose.errors import CameraError, PoseError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.parametrize import ViewParams
@@ -47,7 +48,7 @@ from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.templates import ViewTemplates, match, turn_to
 from vehicle_pose.search.views import Box, box_overflow
-from vehicle_pose.segment.region import find_vehicle
+from vehicle_pose.segment.region import VehicleRegion, find_vehicle
 
 __all__ = ["Pose", "SphereSearch", "sphere_search", "sphere_fit", "sphere_pose", "edge_evidence", "RIVAL_APART"]
 
@@ -166,14 +167,19 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
     if between is not None:
         between()
-    # The regions' GrabCuts are independent (each seeds its own thread's generator), and OpenCV
-    # lets go of the interpreter while it segments: they run side by side.
-    with ThreadPoolExecutor(len(REGION_BORDERS), thread_name_prefix="region") as pool:
-        regions = list(pool.map(lambda border: find_vehicle(work, border=border), REGION_BORDERS))
-    for region in regions:
+    for region in _regions(work):
         if all(_box_iou(region.box, o.box) < 0.8 for o in out):
             out.append(Target(region.box, region.mask))
     return out
+
+
+@timed("grabcut")
+def _regions(work: npt.NDArray[np.uint8]) -> list[VehicleRegion]:
+    """The regions GrabCut finds from the rectangles of :data:`REGION_BORDERS`. They are
+    independent (each seeds its own thread's generator), and OpenCV lets go of the interpreter
+    while it segments: they run side by side (charged to a running clock as one wait)."""
+    with ThreadPoolExecutor(len(REGION_BORDERS), thread_name_prefix="region") as pool:
+        return list(pool.map(lambda border: find_vehicle(work, border=border), REGION_BORDERS))
 
 
 def _seen_box(camera: Camera, model: VehicleModel, least: float) -> Box | None:
