@@ -57,6 +57,11 @@ def test_the_anchored_search_turns_a_rough_start_towards_the_truth(sedan, render
     assert rotation_error(found.camera.R, truth.R) < 3.0
     assert [level.width for level in found.levels] == [320, 320]
     assert found.levels[0].evaluations == options.structure.anchor_evaluations * options.structure.structure_runs
+    # Other seeds draw other samples (decision 0028): another mean, as near the truth.
+    other = find_structure(photo, sedan, start, _box(mask), options.replace(structure_seed=5), renderer,
+                           NelderMeadRestarts())
+    assert rotation_error(other.camera.R, found.camera.R) > 1e-3
+    assert rotation_error(other.camera.R, truth.R) < 3.0
 
 
 @pytest.mark.slow

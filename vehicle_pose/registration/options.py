@@ -199,9 +199,10 @@ class Structure(_Group):
     ``anchor_tau`` of the diagonal) with the place and size fitted to the box, at
     ``structure_size`` pixels, by the cross-entropy method (``anchor_population`` samples a
     generation, the first spread by ``structure_spread`` degrees, ``anchor_evaluations`` a
-    search; ``structure_runs`` searches with their own samples, their results averaged:
-    ``docs/decisions/0016-averaged-anchors.md``); then all coordinates on the chamfer (truncated
-    at ``structure_tau``) and the box term (``structure_evaluations``).
+    search; ``structure_runs`` searches with their own samples, seeded from ``structure_seed``
+    on, their results averaged: ``docs/decisions/0016-averaged-anchors.md``,
+    ``0028-seed-spread.md``); then all coordinates on the chamfer (truncated at
+    ``structure_tau``) and the box term (``structure_evaluations``).
     """
 
     structure: bool = option(True, "with a start camera and a box: find the pose on the photo's edges and the box "
@@ -219,6 +220,8 @@ class Structure(_Group):
     structure_evaluations: int = option(300, "evaluations of the free structure refinement", low=0)
     structure_runs: int = option(2, "independent anchored searches, each with its own samples, whose results are "
                                  "averaged", low=1, high=8)
+    structure_seed: int = option(0, "seed of the first anchored search's sampler (the others follow it): the "
+                                 "pose depends on it by a degree or two on a real photo", low=0)
     shading_trust: float = option(0.15, "loss over its maximum up to which the shading fit is credible",
                                   low=0.0, high=1.0)
     shading_screen: float = option(0.3, "with a start camera, where the structure can find the pose instead: the "

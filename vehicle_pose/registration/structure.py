@@ -217,7 +217,7 @@ def find_structure(
     elite = max(1, st.anchor_population // 10)
     found = [_search(CrossEntropy(population=st.anchor_population, elite=elite, seed=seed), objective, anchored,
                      anchored.start(), steps, st.anchor_evaluations)
-             for seed in range(st.structure_runs)]
+             for seed in range(st.structure_seed, st.structure_seed + st.structure_runs)]
     x = np.mean([f.x for f in found], axis=0)
     camera = anchored.camera(x)
     anchored_camera = camera
