@@ -51,13 +51,26 @@ def spread(items: list, n: int) -> list:
     return [items[i] for i in np.linspace(0, len(items) - 1, n).round().astype(int)]
 
 
+_LOADED: dict[Path, list[tuple[Path, VehicleModel]]] = {}
+
+
+def _folders(real: Path, photoreal: Path, of_real: bool) -> list[tuple[Path, VehicleModel]]:
+    """Each case folder of a set with its model, the models loaded once for every mode: a model
+    loaded again would be prepared again inside its first registration, outside the preparation
+    timed apart."""
+    shared = real if of_real else photoreal
+    if shared not in _LOADED:
+        if of_real:
+            model = next(iter(load_models(real).values()))
+            _LOADED[shared] = [(case, model) for case in sorted((real / "cases").iterdir())]
+        else:
+            _LOADED[shared] = [(case, model) for case, _, model in photoreal_cases(photoreal)]
+    return _LOADED[shared]
+
+
 def cases(mode: str, real: Path, photoreal: Path, n: int) -> list[tuple[str, Path, VehicleModel, dict]]:
     """``(name, photo, model, hint)`` of a mode's cases; the hint is the start camera and box."""
-    if mode.endswith("-real"):
-        model = next(iter(load_models(real).values()))
-        folders = [(case, model) for case in sorted((real / "cases").iterdir())]
-    else:
-        folders = [(case, model) for case, _, model in photoreal_cases(photoreal)]
+    folders = _folders(real, photoreal, mode.endswith("-real"))
     return spread([(case.name, case / "photo.jpg", model, json.loads((case / "init.json").read_text()))
                    for case, model in folders], n)
 
