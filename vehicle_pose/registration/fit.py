@@ -274,8 +274,9 @@ def fit(
         try:
             runs = [search(camera, budget)]
         except _Screened:
-            # Far from explaining the photo after a quarter of the level: the rest of the
-            # level would not bring it under the screen (docs/decisions/0022-shading-screen.md).
+            # Still far from explaining the photo after a quarter of the level: no photo of the
+            # benchmarks came under the screen from there (docs/decisions/0027-screen-within-
+            # the-first-level.md), and the caller has another way to the pose.
             camera = lowest_camera[0].scaled(Wf, Hf)
             levels.append(LevelReport(w, h, mesh.n_faces, counter[0], 0, lowest[1], time.perf_counter() - t,
                                       lowest[0]))
