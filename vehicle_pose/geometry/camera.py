@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from vehicle_pose.errors import CameraError
 
-__all__ = ["Camera", "MAX_IMAGE_SIDE", "MAX_MAGNITUDE", "look_at_camera"]
+__all__ = ["Camera", "MAX_IMAGE_SIDE", "MAX_MAGNITUDE", "look_at_camera", "to_pixels"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -25,6 +25,16 @@ MAX_IMAGE_SIDE = 100_000
 """The largest image side a camera read from JSON may have (pixels)."""
 MAX_MAGNITUDE = 1e9
 """The largest absolute entry of K (pixels) or t (mesh units) a camera read from JSON may have."""
+
+
+def to_pixels(points: FloatArray, K: FloatArray) -> FloatArray:
+    """Camera-frame points (N, 3) to pixels (N, 2) through the intrinsics ``K``; points behind
+    the camera give nan."""
+    uvw = points @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv: FloatArray = uvw[:, :2] / uvw[:, 2:3]
+    uv[points[:, 2] <= 0] = np.nan
+    return uv
 
 
 @dataclass(frozen=True)
@@ -92,12 +102,7 @@ class Camera:
 
     def project(self, points: npt.ArrayLike) -> FloatArray:
         """Mesh-frame points (N, 3) to pixels (N, 2); points behind the camera give nan."""
-        pc = self.to_camera(points)
-        uvw = pc @ self.K.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = uvw[:, :2] / uvw[:, 2:3]
-        uv[pc[:, 2] <= 0] = np.nan
-        return uv
+        return to_pixels(self.to_camera(points), self.K)
 
     def scaled(self, width: int, height: int) -> Camera:
         """The same camera for the photo resized to ``width`` x ``height`` (pixel centres kept)."""

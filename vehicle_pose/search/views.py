@@ -17,7 +17,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from vehicle_pose.errors import CameraError
-from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.geometry.camera import Camera, look_at_camera, to_pixels
 from vehicle_pose.geometry.window import Window
 from vehicle_pose.loss.alternatives import SilhouetteIoULoss
 from vehicle_pose.loss.invariant import InvariantLoss, make_target
@@ -121,7 +121,7 @@ def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box,
         t = depth * ray - pivot
         if not np.all(np.isfinite(t)):
             raise CameraError("camera holds non-finite numbers")
-        uv = _projected(turned + t, K)
+        uv = to_pixels(turned + t, K)
         if not np.all(np.isfinite(uv)):
             depth *= 2.0
             continue
@@ -134,15 +134,6 @@ def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box,
         pix = pix + bc - 0.5 * (lo + hi)
     ray = np.linalg.solve(K, np.array([pix[0], pix[1], 1.0]))
     return Camera(K, R, depth * ray - pivot, camera.width, camera.height)
-
-
-def _projected(pc: FloatArray, K: FloatArray) -> FloatArray:
-    """Camera-frame points (N, 3) to pixels (N, 2), nan behind the camera (as Camera.project)."""
-    uvw = pc @ K.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv: FloatArray = uvw[:, :2] / uvw[:, 2:3]
-    uv[pc[:, 2] <= 0] = np.nan
-    return uv
 
 
 def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, shortfall: float | None = None) -> float:
