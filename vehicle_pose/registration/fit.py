@@ -232,8 +232,7 @@ def fit(
         # With a screen, the first level's best pose so far (its objective, loss and camera):
         # still above the screen after ``screen_after`` evaluations, it ends the fit there.
         screening = li == 0 and plan.screen is not None and plan.screen_after > 0
-        lowest: list[float] = [np.inf, np.inf]
-        lowest_camera: list[Camera] = []
+        lowest: list[tuple[float, float, Camera]] = []
 
         def search(reference: Camera, budget: int,
                    how: Optimizer = optimizer) -> tuple[OptimizeResult, Parametrization]:
@@ -260,10 +259,9 @@ def fit(
                 if progress is not None and counter[0] % 20 == 0:
                     progress(stage, counter[0], value)
                 if screening:
-                    if value < lowest[0]:
-                        lowest[:] = [value, shading]
-                        lowest_camera[:] = [cam]
-                    if counter[0] == plan.screen_after and plan.screens(lowest[1], work, options.color):
+                    if not lowest or value < lowest[0][0]:
+                        lowest[:] = [(value, shading, cam)]
+                    if counter[0] == plan.screen_after and plan.screens(lowest[0][1], work, options.color):
                         raise _Screened
                 return value
 
@@ -277,13 +275,14 @@ def fit(
             # Still far from explaining the photo after a quarter of the level: no photo of the
             # benchmarks came under the screen from there (docs/decisions/0027-screen-within-
             # the-first-level.md), and the caller has another way to the pose.
-            camera = lowest_camera[0].scaled(Wf, Hf)
-            levels.append(LevelReport(w, h, mesh.n_faces, counter[0], 0, lowest[1], time.perf_counter() - t,
-                                      lowest[0]))
+            objective_value, shading, best = lowest[0]
+            camera = best.scaled(Wf, Hf)
+            levels.append(LevelReport(w, h, mesh.n_faces, counter[0], 0, shading, time.perf_counter() - t,
+                                      objective_value))
             if deadline is not None:
                 deadline.offer(camera, "shading")
             if progress is not None:
-                progress(stage, counter[0], lowest[0])
+                progress(stage, counter[0], objective_value)
             return Fit(camera, levels, foreground, grabcut_seconds, screened=True)
         if li == 0 and plan.spread > 0 and len(sizes) > 1 and plan.focal_band is None and not _screened_out(
                 plan, runs[0], loss_fn, renderer, mesh, work, options.color):
