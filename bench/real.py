@@ -93,6 +93,11 @@ def box_iou(model: VehicleModel, camera: Camera, box: list[float]) -> float:
     return float(inter / union) if union > 0 else 0.0
 
 
+def worse(run: dict) -> bool:
+    """Whether a case ended more than :data:`WORSE_DEG` further from the annotation than it started."""
+    return run["start_deg"] is not None and run["final_deg"] > run["start_deg"] + WORSE_DEG
+
+
 def summarise(label: dict, runs: list[dict]) -> dict:
     final = np.array([r["final_deg"] for r in runs])
     start = np.array([r["start_deg"] for r in runs if r["start_deg"] is not None] or [np.nan])
@@ -106,8 +111,7 @@ def summarise(label: dict, runs: list[dict]) -> dict:
         "median box iou": float(np.median([r["box_iou"] for r in runs])),
         "acc pi/6 %": 100.0 * float(np.mean(final <= 30.0)),
         "within 10 %": 100.0 * float(np.mean(final <= 10.0)),
-        "worse by 2": int(sum(r["start_deg"] is not None and r["final_deg"] > r["start_deg"] + WORSE_DEG
-                              for r in runs)),
+        "worse by 2": int(sum(worse(r) for r in runs)),
         "flagged": int(flagged.sum()),
         "wrong unflagged": int((wrong & ~flagged).sum()),
         "right flagged": int((~wrong & flagged).sum()),

@@ -20,7 +20,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from real import WORSE_DEG
+from real import worse
 
 from common import table, write_report
 
@@ -38,8 +38,7 @@ def main() -> None:
         raise SystemExit("the reports share no case")
     errors = np.array([[run[c]["final_deg"] for run in runs] for c in cases])
     half = {c: runs[0][c]["half"] for c in cases}
-    worse = np.array([[run[c]["start_deg"] is not None and run[c]["final_deg"] > run[c]["start_deg"] + WORSE_DEG
-                       for run in runs] for c in cases])
+    worsened = np.array([[worse(run[c]) for run in runs] for c in cases])
     per_case = []
     for i, c in enumerate(cases):
         e = errors[i]
@@ -58,7 +57,7 @@ def main() -> None:
                      "spread of medians": float(np.ptp(medians)),
                      "median of means": float(np.median(errors[pick].mean(axis=1))),
                      "median case range": float(np.median(np.ptp(errors[pick], axis=1))),
-                     "worse by 2": " ".join(str(int(w)) for w in worse[pick].sum(axis=0))})
+                     "worse by 2": " ".join(str(int(w)) for w in worsened[pick].sum(axis=0))})
     print(table(rows, list(rows[0])))
     name = "seeds" + (f"_{args.tag}" if args.tag else "")
     print(write_report(name, {"reports": [str(p) for p in args.reports], "rows": rows, "cases": per_case}))
