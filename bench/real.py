@@ -192,6 +192,13 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
     return {"rows": rows, "runs": runs}, tiles
 
 
+def report_name(shared: Path, start: str, tag: str, *, no_box: bool = False, half: str | None = None,
+                stretched: bool = False) -> str:
+    """The name of a run's report and contact sheet: the case set, the start, then what differs."""
+    return (f"{shared.resolve().name}_" + start.removesuffix(".json") + ("_nobox" if no_box else "")
+            + (f"_{half}" if half else "") + ("_stretched" if stretched else "") + (f"_{tag}" if tag else ""))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "real")
@@ -211,9 +218,8 @@ def main() -> None:
         print(f"no real cases at {args.shared}; skipped")
         return
     options = parse_options(args.option)
-    name = (f"{args.shared.resolve().name}_" + args.start.removesuffix(".json") + ("_nobox" if args.no_box else "")
-            + (f"_{args.half}" if args.half else "") + ("_stretched" if args.stretch else "")
-            + (f"_{args.tag}" if args.tag else ""))
+    name = report_name(args.shared, args.start, args.tag, no_box=args.no_box, half=args.half,
+                       stretched=args.stretch is not None)
     stretch = None if args.stretch is None else tuple(float(v) for v in args.stretch.split(","))
     if stretch is not None and len(stretch) != 3:
         raise SystemExit("--stretch takes three factors SX,SY,SZ")

@@ -26,7 +26,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from real import run, worse
+from real import report_name, run, worse
 
 from common import parse_options, table, write_report, write_sheet
 
@@ -92,8 +92,7 @@ def run_seeds(seeds: list[int], shared: Path, start: str, pairs: list[str], tag:
     paths = []
     for seed in seeds:
         options = parse_options([*pairs, f"structure_seed={seed}"])
-        name = (f"{shared.resolve().name}_{start.removesuffix('.json')}" + (f"_{tag}" if tag else "")
-                + f"_seed{seed}")
+        name = report_name(shared, start, f"{tag}_seed{seed}" if tag else f"seed{seed}")
         data, tiles = run(shared, start, options, cases)
         data["options"] = options.flat()
         paths.append(write_report(name, data))
