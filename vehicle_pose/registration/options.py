@@ -210,8 +210,8 @@ class Structure(_Group):
     structure_size: int = option(320, "longer side of the photo for the structure stages (pixels)", low=16)
     structure_spread: float = option(10.0, "spread of the anchored search's first samples (degrees)", low=0.0,
                                      high=45.0)
-    anchor_tau: float = option(0.05, "chamfer truncation of the anchored search (photo diagonals)", low=1e-3,
-                               high=1.0)
+    anchor_tau: float = option(0.05, "chamfer truncation of the anchored search, the view-sphere search and the "
+                               "edge evidence (photo diagonals)", low=1e-3, high=1.0)
     structure_tau: float = option(0.03, "chamfer truncation of the free structure refinement (photo diagonals)",
                                   low=1e-3, high=1.0)
     anchor_population: int = option(100, "samples per generation of the anchored search", low=10, high=1000)
