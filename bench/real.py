@@ -199,6 +199,21 @@ def report_name(shared: Path, start: str, tag: str, *, no_box: bool = False, hal
             + (f"_{half}" if half else "") + ("_stretched" if stretched else "") + (f"_{tag}" if tag else ""))
 
 
+def run_and_write(name: str, shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
+                  use_box: bool = True, half: str | None = None,
+                  stretch: tuple[float, float, float] | None = None) -> Path:
+    """:func:`run`, then its report (with the options, the box and the stretch) and contact sheet
+    written under ``name``, both paths printed; the report's path."""
+    data, tiles = run(shared, start_name, options, cases, use_box=use_box, half=half, stretch=stretch)
+    data["stretch"] = stretch
+    data["options"] = options.flat()
+    data["box"] = use_box
+    path = write_report(name, data)
+    print(path)
+    print(write_sheet(name, tiles))
+    return path
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "real")
@@ -223,13 +238,8 @@ def main() -> None:
     stretch = None if args.stretch is None else tuple(float(v) for v in args.stretch.split(","))
     if stretch is not None and len(stretch) != 3:
         raise SystemExit("--stretch takes three factors SX,SY,SZ")
-    data, tiles = run(args.shared, args.start, options, args.cases, use_box=not args.no_box, half=args.half,
-                      stretch=stretch)  # type: ignore[arg-type]
-    data["stretch"] = stretch
-    data["options"] = options.flat()
-    data["box"] = not args.no_box
-    print(write_report(name, data))
-    print(write_sheet(name, tiles))
+    run_and_write(name, args.shared, args.start, options, args.cases, use_box=not args.no_box, half=args.half,
+                  stretch=stretch)  # type: ignore[arg-type]
 
 
 if __name__ == "__main__":

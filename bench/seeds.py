@@ -26,9 +26,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from real import report_name, run, worse
+from real import report_name, run_and_write, worse
 
-from common import parse_options, table, write_report, write_sheet
+from common import parse_options, table, write_report
 
 DEFAULT_SHARED = Path(__file__).resolve().parents[2] / "shared" / "real"
 
@@ -93,11 +93,7 @@ def run_seeds(seeds: list[int], shared: Path, start: str, pairs: list[str], tag:
     for seed in seeds:
         options = parse_options([*pairs, f"structure_seed={seed}"])
         name = report_name(shared, start, f"{tag}_seed{seed}" if tag else f"seed{seed}")
-        data, tiles = run(shared, start, options, cases)
-        data["options"] = options.flat()
-        paths.append(write_report(name, data))
-        print(paths[-1])
-        print(write_sheet(name, tiles))
+        paths.append(run_and_write(name, shared, start, options, cases))
     return paths
 
 
