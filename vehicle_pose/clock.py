@@ -33,9 +33,9 @@ class Clock:
     calls: dict[str, int] = field(default_factory=dict)
     busy: bool = False
 
-    def add(self, kind: str, seconds: float) -> None:
+    def add(self, kind: str, seconds: float, calls: int = 1) -> None:
         self.seconds[kind] = self.seconds.get(kind, 0.0) + seconds
-        self.calls[kind] = self.calls.get(kind, 0) + 1
+        self.calls[kind] = self.calls.get(kind, 0) + calls
 
 
 _CLOCK: ContextVar[Clock | None] = ContextVar("vehicle_pose_clock", default=None)

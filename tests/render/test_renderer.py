@@ -227,3 +227,97 @@ def test_degenerate_triangles_give_finite_attributes(renderer):
                          focal=200.0, width=160, height=120)
     frame = renderer.render(mesh, cam)
     assert frame.pixel_count > 100 and np.all(np.isfinite(frame.attrs))
+
+
+def _about(model_mesh, count: int, width: int = 320, height: int = 240, seed: int = 0) -> list[Camera]:
+    """Cameras looking at a mesh from random directions and distances, some cut by the frame."""
+    rng = np.random.default_rng(seed)
+    centre, radius = model_mesh.sphere
+    cams = []
+    for _ in range(count):
+        cam = look_at_camera(centre, [1, 0, 0], [0, 0, 1], azimuth_deg=float(rng.uniform(0, 360)),
+                             elevation_deg=float(rng.uniform(-10, 60)), distance=float(rng.uniform(2.0, 6.0)) * radius,
+                             focal=float(rng.uniform(200, 500)), width=width, height=height)
+        K = cam.K.copy()
+        K[:2, 2] += rng.uniform(-80, 80, 2)  # the car off-centre, at times partly out of the frame
+        cams.append(Camera(K, cam.R, cam.t, width, height))
+    return cams
+
+
+def _same(a: Frame, b: Frame) -> bool:
+    return (a.x0, a.y0, a.labels.shape) == (b.x0, b.y0, b.labels.shape) and np.array_equal(a.labels, b.labels) \
+        and np.array_equal(a.covered(a.attrs), b.covered(b.attrs))
+
+
+def test_poses_drawn_together_equal_each_drawn_alone_bit_for_bit(renderer, sedan):
+    """``render_many`` draws a population in layers of one draw call (where the context can,
+    as llvmpipe and NVIDIA's drivers can): every frame is the single draw's, empty ones too."""
+    mesh = sedan.exterior(4096, renderer)
+    cams = _about(mesh, 150)  # more than one draw's layers
+    cams[7] = Camera(K, np.eye(3), np.array([0.0, 0.0, -50.0]), 320, 240)  # behind the camera
+    cams[40] = Camera(K, np.eye(3), np.array([500.0, 0.0, 5.0]), 320, 240)  # off-screen
+    together = renderer.render_many(mesh, cams)
+    assert renderer.draws_layers
+    assert len(together) == len(cams)
+    assert together[7].pixel_count == together[40].pixel_count == 0
+    assert sum(f.pixel_count > 0 for f in together) > 140
+    assert all(_same(renderer.render(mesh, cam), frame) for cam, frame in zip(cams, together, strict=True))
+
+
+def test_poses_drawn_together_keep_their_textures(renderer, tmp_path):
+    from PIL import Image
+
+    from vehicle_pose.model.loading import load_mesh
+
+    quad = trimesh.Trimesh([[0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]], [[0, 1, 2], [0, 2, 3]], process=False)
+    tex = np.zeros((8, 8, 3), np.uint8)
+    tex[:, 4:] = 255
+    quad.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1], [0, 1]], image=Image.fromarray(tex))
+    quad.export(tmp_path / "quad.glb")
+    mesh = load_mesh(tmp_path / "quad.glb")
+    cams = [look_at_camera([0, 0, 0], [1, 0, 0], [0, 0, 1], azimuth_deg=a, elevation_deg=e, distance=4.0,
+                           focal=200.0, width=160, height=120) for a in (-30, 0, 25) for e in (-20, 0, 30)]
+    together = renderer.render_many(mesh, cams)
+    assert all(_same(renderer.render(mesh, cam), frame) for cam, frame in zip(cams, together, strict=True))
+    k = together[4].covered(together[4].attrs)[:, 0]
+    assert k.max() > 0.3 and k.min() < 0.05 * k.max()
+
+
+def test_poses_of_many_sizes_drawn_together_and_alone_in_turn(renderer, sedan):
+    """Cameras of different sizes are drawn one at a time; the layered targets of several sizes
+    in turn (two are kept, the others let go) leave the single draws' framebuffers working."""
+    mesh = sedan.exterior(4096, renderer)
+    mixed = _about(mesh, 3) + _about(mesh, 3, 200, 150)
+    together = renderer.render_many(mesh, mixed)
+    assert all(_same(renderer.render(mesh, c), f) for c, f in zip(mixed, together, strict=True))
+    for w, h in [(320, 240), (160, 120), (200, 150), (320, 240), (90, 70), (452, 339)]:
+        cams = _about(mesh, 5, w, h, seed=w)
+        together = renderer.render_many(mesh, cams)
+        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, together, strict=True))
+    assert len(renderer._targets) <= 2
+
+
+def test_a_context_without_layered_draws_draws_poses_one_at_a_time(ctx, sedan, monkeypatch):
+    import vehicle_pose.render.renderer as rendering
+
+    monkeypatch.setattr(rendering, "supported", lambda _ctx: False)
+    renderer = Renderer(ctx)
+    try:
+        mesh = sedan.exterior(4096, renderer)
+        cams = _about(mesh, 6)
+        assert not renderer.draws_layers
+        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, renderer.render_many(mesh, cams),
+                                                                         strict=True))
+        assert not renderer._targets
+    finally:
+        renderer.release()
+
+
+def test_a_renderer_that_drew_layers_releases_them(ctx, sedan):
+    renderer = Renderer(ctx)
+    mesh = sedan.exterior(4096, renderer)
+    assert renderer.render_many(mesh, _about(mesh, 4))[0].pixel_count > 0
+    assert renderer._targets
+    renderer.release()
+    assert not renderer._targets and ctx.error == "GL_NO_ERROR"
+    assert Renderer(ctx).render(mesh, _about(mesh, 1)[0]).pixel_count > 0

@@ -1,6 +1,7 @@
 """The optimisers: the simplex with restarts minimises, keeps to its budget, and its restarts follow
 the last run; CMA-ES walks a narrow valley, keeps to its budget, repeats itself and leaves NumPy's
-global generator as it found it; the cross-entropy method returns the middle of a pitted floor."""
+global generator as it found it; the cross-entropy method returns the middle of a pitted floor;
+an objective that scores a generation whole gives the same search."""
 
 from __future__ import annotations
 
@@ -10,10 +11,12 @@ import pytest
 from vehicle_pose.registry import OPTIMIZERS
 from vehicle_pose.search.optimize import (
     CMAES,
+    Batch,
     Counted,
     CrossEntropy,
     NelderMeadRestarts,
     basis_along,
+    evaluate,
 )
 
 
@@ -172,3 +175,29 @@ def test_cross_entropy_keeps_to_its_budget_repeats_itself_and_checks_its_elite()
     np.testing.assert_array_equal(first.x, again.x)
     with pytest.raises(ValueError, match="elite"):
         CrossEntropy(population=10, elite=11)
+
+
+@pytest.mark.parametrize("optimizer", [CrossEntropy(population=20, elite=4, seed=5), CMAES(sigma=0.5, seed=2)])
+def test_an_objective_that_scores_generations_whole_gives_the_same_search(optimizer):
+    """A :class:`Batch` objective is handed each generation at once (one call of ``many`` per
+    generation after the start), and the search ends exactly where one point at a time ends."""
+    sizes: list[int] = []
+
+    def many(xs: np.ndarray) -> list[float]:
+        sizes.append(len(xs))
+        return [valley(x) for x in xs]
+
+    alone = optimizer(valley, np.zeros(4), np.full(4, 0.5), max_evaluations=200)
+    together = optimizer(Batch(valley, many), np.zeros(4), np.full(4, 0.5), max_evaluations=200)
+    np.testing.assert_array_equal(together.x, alone.x)
+    assert (together.fun, together.evaluations) == (alone.fun, alone.evaluations)
+    assert len(sizes) >= 2 and sum(sizes) >= together.evaluations - 2 and max(sizes) > 1
+
+
+def test_counted_many_counts_and_keeps_the_best_as_one_by_one():
+    xs = np.array([[3.0], [1.0], [2.0], [1.0]])
+    one = Counted(lambda x: float(x[0]))
+    many = Counted(Batch(lambda x: float(x[0]), lambda xs: [float(x[0]) for x in xs]))
+    assert [one(x) for x in xs] == many.many(xs) == evaluate(lambda x: float(x[0]), xs)
+    assert (one.count, one.best_f) == (many.count, many.best_f) == (4, 1.0)
+    np.testing.assert_array_equal(one.best_x, many.best_x)

@@ -4,7 +4,8 @@ A service gives each job a time limit. A signal sent at the limit lands wherever
 is (in OpenGL, numba, OpenCV, or an ``except`` that catches it) and is often lost; the job then
 runs on to a hard kill and loses what it found. Instead the caller passes the moment by which
 the registration must end; every search's objective checks it before each evaluation (an
-evaluation takes milliseconds), and so does each stage's progress report. Past it the
+evaluation takes milliseconds; a generation scored at once, a fraction of a second), and so
+does each stage's progress report. Past it the
 registration raises :class:`~vehicle_pose.errors.OutOfTime` with the best pose the stages
 finished so far had found, which the caller can keep.
 """
@@ -18,7 +19,7 @@ import numpy.typing as npt
 
 from vehicle_pose.errors import OutOfTime
 from vehicle_pose.geometry.camera import Camera
-from vehicle_pose.search.optimize import Objective, Optimizer, OptimizeResult
+from vehicle_pose.search.optimize import Batch, Objective, Optimizer, OptimizeResult, evaluate
 
 __all__ = ["Deadline"]
 
@@ -47,7 +48,8 @@ class Deadline:
             raise OutOfTime(f"the registration reached its deadline{found}", best, self.stage)
 
     def guard(self, optimizer: Optimizer) -> Optimizer:
-        """``optimizer`` with the deadline checked before each evaluation of the objective."""
+        """``optimizer`` with the deadline checked before each evaluation of the objective (before
+        each generation, where the optimiser hands it generations whole)."""
 
         def guarded(fun: Objective, x0: npt.NDArray[np.float64], steps: npt.NDArray[np.float64], *,
                     max_evaluations: int) -> OptimizeResult:
@@ -55,6 +57,10 @@ class Deadline:
                 self.check()
                 return fun(x)
 
-            return optimizer(checked, x0, steps, max_evaluations=max_evaluations)
+            def checked_many(xs: npt.NDArray[np.float64]) -> list[float]:
+                self.check()
+                return evaluate(fun, xs)
+
+            return optimizer(Batch(checked, checked_many), x0, steps, max_evaluations=max_evaluations)
 
         return guarded

@@ -32,8 +32,8 @@ from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.options import Pyramid, RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import box_mask, doubt_weights, first_foreground, resegment, silhouette
-from vehicle_pose.render.renderer import Renderer
-from vehicle_pose.search.optimize import CMAES, Optimizer, OptimizeResult
+from vehicle_pose.render.renderer import Frame, Renderer
+from vehicle_pose.search.optimize import CMAES, Batch, Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow
 
 __all__ = ["Progress", "FitPlan", "Fit", "fit", "level_sizes", "face_budget", "probe_factors", "search_frame",
@@ -242,12 +242,13 @@ def fit(
             except PoseError:
                 raise PoseError(f"the start pose does not show the {side} side's wheels") from None
 
-            def objective(x: npt.NDArray[np.float64]) -> float:
+            def camera_at(x: npt.NDArray[np.float64]) -> Camera | None:
                 try:
-                    cam = params.camera(x)
+                    return params.camera(x)
                 except (PoseError, CameraError):
-                    return _INVALID
-                rendered = renderer.render(mesh, cam)
+                    return None
+
+            def score(cam: Camera, rendered: Frame) -> float:
                 shading = float(loss_fn(rendered))
                 value = shading
                 if edge_fn is not None:
@@ -265,8 +266,18 @@ def fit(
                         raise _Screened
                 return value
 
+            def objective(x: npt.NDArray[np.float64]) -> float:
+                cam = camera_at(x)
+                return _INVALID if cam is None else score(cam, renderer.render(mesh, cam))
+
+            def objective_many(xs: npt.NDArray[np.float64]) -> list[float]:
+                # A generation's poses drawn together (Renderer.render_many), scored in order.
+                cams = [camera_at(x) for x in xs]
+                frames = iter(renderer.render_many(mesh, [c for c in cams if c is not None]))
+                return [_INVALID if c is None else score(c, next(frames)) for c in cams]
+
             steps = params.steps() * plan.step_scale * 0.4**li
-            return how(objective, x0, steps, max_evaluations=budget), params
+            return how(Batch(objective, objective_many), x0, steps, max_evaluations=budget), params
 
         budget = budgets.fine_evaluations if li == len(sizes) - 1 and li > 0 else plan.evaluations
         try:

@@ -50,8 +50,8 @@ from vehicle_pose.registration.fit import Fit, Progress, face_budget
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import silhouette
-from vehicle_pose.render.renderer import Renderer
-from vehicle_pose.search.optimize import CrossEntropy, Optimizer, OptimizeResult
+from vehicle_pose.render.renderer import Frame, Renderer
+from vehicle_pose.search.optimize import Batch, CrossEntropy, Optimizer, OptimizeResult
 from vehicle_pose.search.views import Box, box_overflow, fit_to_box
 
 __all__ = [
@@ -114,21 +114,26 @@ class Structure:
 
 def _search(optimizer: Optimizer, objective: StructureCost, params: BoxAnchoredParams | ViewParams, x0: FloatArray,
             steps: FloatArray, budget: int) -> OptimizeResult:
-    def fun(x: FloatArray) -> float:
+    def camera(x: FloatArray) -> Camera | None:
         try:
-            cam = params.camera(x)
+            return params.camera(x)
         except (PoseError, CameraError):
-            return _INVALID
-        return objective(cam)
+            return None
 
-    return optimizer(fun, x0, steps, max_evaluations=budget)
+    def one(x: FloatArray) -> float:
+        cam = camera(x)
+        return _INVALID if cam is None else objective(cam)
+
+    # A population's poses are drawn together (Renderer.render_many), the values the same.
+    return optimizer(Batch(one, lambda xs: objective.many([camera(x) for x in xs])), x0, steps,
+                     max_evaluations=budget)
 
 
 class StructureCost:
     """The chamfer of ``mesh``'s edges against the photo's (truncated at ``tau`` of the diagonal,
     creases as ``options.terms`` says), plus ``box_weight`` times the box term of ``points``
-    when a ``box`` is given; called with a camera for the photo's size. ``progress`` is told
-    every 20 calls, as ``stage``."""
+    when a ``box`` is given; called with a camera for the photo's size, or with many
+    (:meth:`many`). ``progress`` is told every 20 poses scored, as ``stage``."""
 
     def __init__(self, image: npt.NDArray[np.uint8], mesh: Mesh, renderer: Renderer, options: RegistrationOptions,
                  *, tau: float, box: Box | None = None, points: FloatArray | None = None,
@@ -141,7 +146,16 @@ class StructureCost:
         self.progress, self.stage, self.count = progress, stage, 0
 
     def __call__(self, cam: Camera) -> float:
-        value = self.edges(self.renderer.render(self.mesh, cam))
+        return self._score(cam, self.renderer.render(self.mesh, cam))
+
+    def many(self, cameras: list[Camera | None]) -> list[float]:
+        """The cost of each camera, drawn together; ``_INVALID`` for None (coordinates that give
+        no camera), which is not counted."""
+        frames = iter(self.renderer.render_many(self.mesh, [c for c in cameras if c is not None]))
+        return [_INVALID if cam is None else self._score(cam, next(frames)) for cam in cameras]
+
+    def _score(self, cam: Camera, frame: Frame) -> float:
+        value = self.edges(frame)
         if self.box is not None and self.box_points is not None and self.terms.box_weight > 0:
             value += self.terms.box_weight * box_overflow(cam, self.box_points, self.box, self.terms.box_tolerance,
                                                           self.terms.box_shortfall)

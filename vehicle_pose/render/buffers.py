@@ -22,12 +22,16 @@ class GpuMesh:
     On llvmpipe each draw call has a fixed cost: merging the photoreal models' four or five
     per-texture draws into two made their frames 5-20 % faster at 160-320 pixels. A draw is
     ``(vertex array, cull)``: one-sided parts (:attr:`Part.one_sided`) are culled from behind.
+    The buffers are made once; each program that draws them gets its own vertex arrays
+    (:meth:`draws_for`), ``program``'s at once (:attr:`draws`).
     """
 
     def __init__(self, ctx: moderngl.Context, program: moderngl.Program, mesh: Mesh) -> None:
-        self.draws: list[tuple[moderngl.VertexArray, bool]] = []
+        self.ctx = ctx
         self.texture: moderngl.TextureArray | None = None
         self._resources: list[object] = []
+        self._buffers: list[tuple[moderngl.Buffer, moderngl.Buffer, bool]] = []
+        self._draws: dict[int, list[tuple[moderngl.VertexArray, bool]]] = {}
         layers: dict[int, int] = {}
         images: list[npt.NDArray[np.uint8]] = []
         for part in mesh.parts:
@@ -65,19 +69,32 @@ class GpuMesh:
                 offset += n
             vbo = ctx.buffer(np.ascontiguousarray(np.vstack(data)).tobytes())
             ibo = ctx.buffer(np.ascontiguousarray(np.vstack(faces)).tobytes())
-            vao = ctx.vertex_array(
-                program,
-                [(vbo, "3f 3f 2f 1f 1f 1f", "in_pos", "in_normal", "in_uv", "in_albedo", "in_label", "in_layer")],
-                index_buffer=ibo,
-                index_element_size=4,
-            )
-            self._resources += [vbo, ibo, vao]
-            self.draws.append((vao, one_sided))
+            self._resources += [vbo, ibo]
+            self._buffers.append((vbo, ibo, one_sided))
+        self.draws = self.draws_for(program)
+
+    def draws_for(self, program: moderngl.Program) -> list[tuple[moderngl.VertexArray, bool]]:
+        """The draws of this mesh by ``program`` (its vertex arrays made on first use)."""
+        draws = self._draws.get(program.glo)
+        if draws is None:
+            draws = self._draws[program.glo] = []
+            for vbo, ibo, one_sided in self._buffers:
+                vao = self.ctx.vertex_array(
+                    program,
+                    [(vbo, "3f 3f 2f 1f 1f 1f", "in_pos", "in_normal", "in_uv", "in_albedo", "in_label", "in_layer")],
+                    index_buffer=ibo,
+                    index_element_size=4,
+                )
+                self._resources.append(vao)
+                draws.append((vao, one_sided))
+        return draws
 
     def release(self) -> None:
-        for r in self._resources:
+        for r in reversed(self._resources):
             r.release()  # type: ignore[attr-defined]
         self._resources.clear()
+        self._draws.clear()
+        self.draws = []
         self.draws.clear()
         self.texture = None
 

@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from vehicle_pose.errors import RenderError
 from vehicle_pose.model.mesh import Mesh
-from vehicle_pose.render.gl import thread_context
+from vehicle_pose.render.gl import gl_library, thread_context
 from vehicle_pose.render.renderer import Renderer, uniform
 
 __all__ = ["FACE_ID_FRAGMENT_SHADER", "FACE_ID_VERTEX_SHADER", "exterior_faces", "sphere_directions"]
@@ -143,12 +143,11 @@ class _GL:
 def _gl_functions() -> _GL | None:
     """The calls of :class:`_GL` from the GL dispatch library (libglvnd), or None where there is
     none to load (the pass then draws in one lane through moderngl)."""
-    for name in ("libOpenGL.so.0", "libGL.so.1"):
-        try:
-            return _GL(ctypes.CDLL(name))
-        except (OSError, AttributeError):
-            continue
-    return None
+    lib = gl_library()
+    try:
+        return None if lib is None else _GL(lib)
+    except AttributeError:  # a library without these entry points
+        return None
 
 
 def _lanes() -> int:

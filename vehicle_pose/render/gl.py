@@ -6,6 +6,8 @@ keyed by process id: a forked child that asks for one gets its own. Nothing happ
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import os
 import threading
 
@@ -13,7 +15,7 @@ import moderngl
 
 from vehicle_pose.errors import RenderError
 
-__all__ = ["get_context", "release_context", "thread_context"]
+__all__ = ["get_context", "gl_library", "release_context", "thread_context"]
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -70,3 +72,16 @@ def release_context() -> None:
         pid = _state.pop("pid", None)
         if ctx is not None and pid == os.getpid():
             ctx.release()  # type: ignore[attr-defined]
+
+
+@functools.cache
+def gl_library() -> ctypes.CDLL | None:
+    """The OpenGL dispatch library (libglvnd's ``libOpenGL``, else ``libGL``) for the calls made
+    through ctypes (those moderngl does not make, or makes holding Python's lock); they go to
+    the context current on the calling thread. None where neither loads."""
+    for name in ("libOpenGL.so.0", "libGL.so.1"):
+        try:
+            return ctypes.CDLL(name)
+        except OSError:
+            continue
+    return None

@@ -13,9 +13,11 @@ only so that :meth:`Renderer.render` can cull them from behind.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -30,8 +32,14 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.mesh import KINDS, Mesh
 from vehicle_pose.render.buffers import GpuMesh
 from vehicle_pose.render.gl import get_context
+from vehicle_pose.render.layers import MAX_LAYERS, LayeredTarget, supported
 
 __all__ = ["Frame", "Renderer", "projection_matrix", "clip_planes", "headlight", "uniform"]
+
+log = logging.getLogger(__name__)
+
+_LAYER_BUDGET = 128 << 20
+"""Memory a size's layered target may take (bytes): 100 layers up to 320 x 190, 19 at 640 x 480."""
 
 _VERTEX_SHADER = """
 #version 330
@@ -59,6 +67,21 @@ void main() {
     gl_Position = mvp * vec4(in_pos, 1.0);
 }
 """
+
+# The same for many poses in one instanced draw (:mod:`vehicle_pose.render.layers`): instance i
+# takes the i-th matrices and draws into layer i; the arithmetic is the single draw's.
+_LAYERED_VERTEX_SHADER = _VERTEX_SHADER.replace(
+    "#version 330\n",
+    "#version 330\n#extension GL_ARB_shader_viewport_layer_array : enable\n"
+    "#extension GL_AMD_vertex_shader_layer : enable\n",
+).replace(
+    "uniform mat4 mvp;\nuniform mat4 mv;\n",
+    f"uniform mat4 mvps[{MAX_LAYERS}];\nuniform mat4 mvs[{MAX_LAYERS}];\n",
+).replace(
+    "void main() {\n",
+    "void main() {\n    mat4 mvp = mvps[gl_InstanceID];\n    mat4 mv = mvs[gl_InstanceID];\n"
+    "    gl_Layer = gl_InstanceID;\n",
+)
 
 # The geometric normal from screen-space derivatives is turned towards the camera, and the
 # shading normal is made to agree with it: face winding, which Internet CAD often gets wrong,
@@ -134,6 +157,14 @@ def projection_matrix(camera: Camera, near: float, far: float) -> npt.NDArray[np
     )
 
 
+def _matrices(camera: Camera, near: float, far: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """The model-view-projection and model-view matrices of ``camera`` (row-major, float64)."""
+    mv = np.eye(4)
+    mv[:3, :3] = camera.R
+    mv[:3, 3] = camera.t
+    return projection_matrix(camera, near, far) @ mv, mv
+
+
 @dataclass(eq=False)
 class Frame:
     """Rendered attributes in a window of the image.
@@ -196,6 +227,10 @@ class Frame:
         return self.full(self.labels > 0)
 
 
+_Pose = tuple[int, Camera, tuple[float, float], tuple[int, int, int, int]]
+"""A pose :meth:`Renderer.render_many` draws: its index, camera, clip planes and window."""
+
+
 def _release_framebuffer(fbo: moderngl.Framebuffer) -> None:
     """Free a framebuffer and its renderbuffers (releasing the framebuffer alone keeps them)."""
     attachments = [*fbo.color_attachments, fbo.depth_attachment]
@@ -214,19 +249,24 @@ class Renderer:
         Defaults to the process's headless context (:func:`vehicle_pose.render.gl.get_context`).
     cache_size : int, keyword-only
         How many meshes keep their GPU buffers.
+    layers : bool, keyword-only
+        Whether :meth:`render_many` may draw poses together, in layers, where the context can
+        (the frames are the same either way).
 
-    While a :mod:`vehicle_pose.clock` runs, :meth:`render` charges its drawing (the context
-    finished) to ``draw`` and its read-back to ``read``.
+    While a :mod:`vehicle_pose.clock` runs, :meth:`render` and :meth:`render_many` charge their
+    drawing (the context finished) to ``draw`` and their read-back to ``read``, one call a pose.
     """
 
-    def __init__(self, ctx: moderngl.Context | None = None, *, cache_size: int = 8) -> None:
+    def __init__(self, ctx: moderngl.Context | None = None, *, cache_size: int = 8, layers: bool = True) -> None:
         self.ctx = ctx if ctx is not None else get_context()
+        self.layers = layers
         self.program = self.ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
         uniform(self.program, "tex").value = 0
         self._meshes: OrderedDict[int, GpuMesh] = OrderedDict()
         self._fbos: OrderedDict[tuple[int, int, str, bool], moderngl.Framebuffer] = OrderedDict()
         self._cache_size = cache_size
         self._programs: dict[str, moderngl.Program] = {}
+        self._targets: OrderedDict[tuple[int, int], LayeredTarget] = OrderedDict()
 
     def _gpu_mesh(self, mesh: Mesh) -> GpuMesh:
         gpu = self._meshes.get(mesh.key)
@@ -299,40 +339,18 @@ class Renderer:
         win = self.window(mesh, camera) if planes is not None else None
         if planes is None or win is None:
             return Frame.empty(camera.width, camera.height)
-        near, far = planes
-        mv = np.eye(4)
-        mv[:3, :3] = camera.R
-        mv[:3, 3] = camera.t
-        mvp = projection_matrix(camera, near, far) @ mv
+        mvp, mv = _matrices(camera, *planes)
         # GLSL matrices are column-major.
         uniform(self.program, "mvp").write(mvp.T.astype("f4").tobytes())
         uniform(self.program, "mv").write(mv.T.astype("f4").tobytes())
         fbo = self.framebuffer(camera.width, camera.height)
-        fbo.use()
-        fbo.viewport = (0, 0, camera.width, camera.height)
         x0, y0, w, h = win
-        self.ctx.scissor = (x0, y0, w, h)
-        # Only labels and depth are cleared: the attributes count only where a label is set,
-        # and clearing their 16 bytes a pixel cost llvmpipe 10-15 % of a 640x480 frame.
-        fbo.color_mask = ((False, False, False, False), (True, True, True, True))  # type: ignore[assignment]
-        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        fbo.color_mask = ((True, True, True, True), (True, True, True, True))  # type: ignore[assignment]
-        self.ctx.enable(moderngl.DEPTH_TEST)
-        self.ctx.disable(moderngl.BLEND)
-        self.ctx.front_face = "ccw"
-        self.ctx.cull_face = "back"
+        self._begin(fbo, camera.width, camera.height, win)
         clock = current()
         t0 = time.perf_counter() if clock is not None else 0.0
         try:
             gpu = self._gpu_mesh(mesh)
-            if gpu.texture is not None:
-                gpu.texture.use(0)
-            for vao, cull in gpu.draws:
-                if cull:
-                    self.ctx.enable(moderngl.CULL_FACE)
-                else:
-                    self.ctx.disable(moderngl.CULL_FACE)
-                vao.render(moderngl.TRIANGLES)
+            self._draw(gpu, gpu.draws, 1)
             if clock is not None:
                 self.ctx.finish()
                 t1 = time.perf_counter()
@@ -343,9 +361,7 @@ class Renderer:
                 clock.add("read", time.perf_counter() - t1)
         finally:
             self.ctx.scissor = None
-        err = self.ctx.error
-        if err != "GL_NO_ERROR":
-            raise RenderError(f"OpenGL error while rendering: {err}")
+        self._check()
         return Frame(
             attrs.reshape(h, w, 4),
             labels.reshape(h, w),
@@ -355,8 +371,143 @@ class Renderer:
             camera.height,
         )
 
+    def render_many(self, mesh: Mesh, cameras: Sequence[Camera]) -> list[Frame]:
+        """:meth:`render` of each camera, in order, each frame the same bit for bit. Cameras of
+        one image size are drawn up to :data:`~vehicle_pose.render.layers.MAX_LAYERS` at a time,
+        each into a layer of a layered target (:mod:`vehicle_pose.render.layers`), where the
+        context can and the size's target fits ``_LAYER_BUDGET``; else one at a time."""
+        frames: list[Frame | None] = [None] * len(cameras)
+        drawn: list[_Pose] = []
+        for i, camera in enumerate(cameras):
+            planes = clip_planes(mesh, camera)
+            win = self.window(mesh, camera) if planes is not None else None
+            if planes is None or win is None:
+                frames[i] = Frame.empty(camera.width, camera.height)
+            else:
+                drawn.append((i, camera, planes, win))
+        sizes = {(camera.width, camera.height) for _, camera, _, _ in drawn}
+        target = self._target(*sizes.pop()) if len(drawn) > 1 and len(sizes) == 1 else None
+        if target is None:
+            for i, camera, _, _ in drawn:
+                frames[i] = self.render(mesh, camera)
+        else:
+            for first in range(0, len(drawn), target.layers):
+                self._render_layers(mesh, drawn[first : first + target.layers], target, frames)
+        return [f for f in frames if f is not None]
+
+    def _render_layers(self, mesh: Mesh, drawn: list[_Pose], target: LayeredTarget,
+                       frames: list[Frame | None]) -> None:
+        """Draw ``drawn`` into the layers of ``target``, each frame to its index in ``frames``."""
+        program = self._layered
+        assert program is not None
+        mvps = np.zeros((MAX_LAYERS, 4, 4), np.float32)
+        mvs = np.zeros((MAX_LAYERS, 4, 4), np.float32)
+        for k, (_, camera, planes, _) in enumerate(drawn):
+            mvp, mv = _matrices(camera, *planes)
+            mvps[k], mvs[k] = mvp.T, mv.T
+        uniform(program, "mvps").write(mvps.tobytes())
+        uniform(program, "mvs").write(mvs.tobytes())
+        # One scissor for every layer: the union of the windows (each pose draws only in its own).
+        windows = np.array([win for _, _, _, win in drawn])
+        x0, y0 = windows[:, :2].min(0)
+        x1, y1 = (windows[:, :2] + windows[:, 2:]).max(0)
+        self._begin(target.fbo, target.width, target.height, (int(x0), int(y0), int(x1 - x0), int(y1 - y0)))
+        clock = current()
+        t0 = time.perf_counter() if clock is not None else 0.0
+        try:
+            gpu = self._gpu_mesh(mesh)
+            self._draw(gpu, gpu.draws_for(program), len(drawn))
+            if clock is not None:
+                self.ctx.finish()
+                t1 = time.perf_counter()
+            for layer, (i, camera, _, win) in enumerate(drawn):
+                attrs, labels = target.read(layer, win)
+                frames[i] = Frame(attrs, labels, win[0], win[1], camera.width, camera.height)
+            if clock is not None:
+                clock.add("draw", t1 - t0, calls=len(drawn))
+                clock.add("read", time.perf_counter() - t1, calls=len(drawn))
+        finally:
+            self.ctx.scissor = None
+        self._check()
+
+    def _begin(self, fbo: moderngl.Framebuffer, width: int, height: int, scissor: tuple[int, int, int, int]) -> None:
+        """Bind ``fbo``, clear its labels and depth within ``scissor`` and set the draw's state."""
+        fbo.use()
+        fbo.viewport = (0, 0, width, height)
+        self.ctx.scissor = scissor
+        # Only labels and depth are cleared: the attributes count only where a label is set,
+        # and clearing their 16 bytes a pixel cost llvmpipe 10-15 % of a 640x480 frame.
+        fbo.color_mask = ((False, False, False, False), (True, True, True, True))  # type: ignore[assignment]
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        fbo.color_mask = ((True, True, True, True), (True, True, True, True))  # type: ignore[assignment]
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.BLEND)
+        self.ctx.front_face = "ccw"
+        self.ctx.cull_face = "back"
+
+    def _draw(self, gpu: GpuMesh, draws: list[tuple[moderngl.VertexArray, bool]], instances: int) -> None:
+        """Draw ``gpu``'s ``draws`` (its vertex arrays for one program), ``instances`` times."""
+        if gpu.texture is not None:
+            gpu.texture.use(0)
+        for vao, cull in draws:
+            if cull:
+                self.ctx.enable(moderngl.CULL_FACE)
+            else:
+                self.ctx.disable(moderngl.CULL_FACE)
+            vao.render(moderngl.TRIANGLES, instances=instances)
+
+    def _check(self) -> None:
+        err = self.ctx.error
+        if err != "GL_NO_ERROR":
+            raise RenderError(f"OpenGL error while rendering: {err}")
+
+    @property
+    def draws_layers(self) -> bool:
+        """Whether :meth:`render_many` draws poses together on this context."""
+        return self._layered is not None
+
+    @cached_property
+    def _layered(self) -> moderngl.Program | None:
+        """The program of the layered draws, None where the context cannot draw them (or the
+        renderer is not to)."""
+        if not self.layers or not supported(self.ctx):
+            return None
+        try:
+            program = self.ctx.program(vertex_shader=_LAYERED_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+        except moderngl.Error as exc:
+            log.info("poses are drawn one at a time: the layered program does not build (%s)", exc)
+            return None
+        uniform(program, "tex").value = 0
+        return program
+
+    def _target(self, width: int, height: int) -> LayeredTarget | None:
+        """The layered target of that size (made on first use; the two used last are kept);
+        None where the context draws no layers or two layers of that size exceed the budget."""
+        target = self._targets.get((width, height))
+        if target is not None:
+            self._targets.move_to_end((width, height))
+            return target
+        layers = min(MAX_LAYERS, _LAYER_BUDGET // LayeredTarget.nbytes(width, height, 1))
+        if layers < 2 or self._layered is None:
+            return None
+        while len(self._targets) >= 2:
+            self._release_target(self._targets.pop(next(iter(self._targets))))
+        target = self._targets[(width, height)] = LayeredTarget(self.ctx, width, height, layers)
+        return target
+
+    def _release_target(self, target: LayeredTarget) -> None:
+        # moderngl rebinds the framebuffer it bound last whenever it makes one: bind a live one.
+        self.framebuffer(target.width, target.height).use()
+        target.release()
+
     def release(self) -> None:
-        """Free every GPU buffer this renderer holds."""
+        """Free every GPU buffer this renderer holds, leaving the context's own framebuffer bound
+        (moderngl rebinds the framebuffer bound last whenever it makes one: a renderer made
+        after this one on the same context must not find a freed one there)."""
+        for target in self._targets.values():
+            self._release_target(target)
+        self._targets.clear()
+        self.ctx.detect_framebuffer(0).use()
         for gpu in self._meshes.values():
             gpu.release()
         self._meshes.clear()
@@ -364,6 +515,9 @@ class Renderer:
             _release_framebuffer(fbo)
         self._fbos.clear()
         self.program.release()
+        layered = self.__dict__.get("_layered")
+        if layered is not None:
+            layered.release()
         for program in self._programs.values():
             program.release()
         self._programs.clear()

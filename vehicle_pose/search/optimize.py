@@ -3,6 +3,10 @@
 The default is the paper's downhill simplex (Nelder-Mead) restarted at the best point with a
 fresh simplex until a restart no longer improves. Any callable with the :class:`Optimizer`
 signature can replace it.
+
+An objective may also score many points at once (a :class:`Batch`, whose ``many`` draws a
+population's poses in one pass): the population methods (:class:`CrossEntropy`, :class:`CMAES`)
+hand it each generation whole (:func:`evaluate`); the result is the same as one point at a time.
 """
 
 from __future__ import annotations
@@ -32,11 +36,29 @@ def _cma() -> Any:
 
 __all__ = [
     "OptimizeResult", "Optimizer", "NelderMeadRestarts", "Powell", "CMAES", "CrossEntropy", "Counted", "basis_along",
-    "make_optimizer",
+    "make_optimizer", "Batch", "evaluate",
 ]
 
 FloatArray = npt.NDArray[np.float64]
 Objective = Callable[[FloatArray], float]
+
+
+class Batch:
+    """An objective that scores one point (``one``) and many at once (``many``: the rows of an
+    array to their values, each the same as ``one``'s)."""
+
+    def __init__(self, one: Objective, many: Callable[[FloatArray], list[float]]) -> None:
+        self.one, self.many = one, many
+
+    def __call__(self, x: FloatArray) -> float:
+        return self.one(x)
+
+
+def evaluate(fun: Objective, xs: FloatArray) -> list[float]:
+    """``fun`` at each row of ``xs``, in order: at once where it is a :class:`Batch`."""
+    if isinstance(fun, Batch):
+        return [float(v) for v in fun.many(xs)]
+    return [float(fun(x)) for x in xs]
 
 
 @dataclass(frozen=True)
@@ -70,6 +92,15 @@ class Counted:
         if f < self.best_f:
             self.best_f, self.best_x = f, np.array(x, dtype=np.float64)
         return f
+
+    def many(self, xs: FloatArray) -> list[float]:
+        """The values at the rows of ``xs`` (:func:`evaluate`), counted and kept as one by one."""
+        values = evaluate(self.fun, xs)
+        for x, f in zip(xs, values, strict=True):
+            self.count += 1
+            if f < self.best_f:
+                self.best_f, self.best_x = f, np.array(x, dtype=np.float64)
+        return values
 
     def result(self, restarts: int = 0) -> OptimizeResult:
         """The best point seen, its value and the evaluation count."""
@@ -263,7 +294,7 @@ class CMAES:
             # Only whole generations, so the budget holds exactly.
             while not es.stop() and counted.count + es.popsize <= max_evaluations:
                 zs = es.ask()
-                es.tell(zs, [counted(x0 + np.asarray(z) * s) for z in zs])
+                es.tell(zs, counted.many(np.array([x0 + np.asarray(z) * s for z in zs])))
         finally:
             np.random.set_state(state)
         return counted.result()
@@ -310,7 +341,7 @@ class CrossEntropy:
             xs = mean + rng.standard_normal((self.population, mean.size)) * spread
             if g == 0:
                 xs[0] = mean
-            values = np.array([counted(x) for x in xs])
+            values = np.array(counted.many(xs))
             best = xs[np.argsort(values, kind="stable")[: self.elite]]
             mean, spread = best.mean(axis=0), best.std(axis=0)
         return OptimizeResult(mean, counted(mean), counted.count, generations - 1)
