@@ -508,6 +508,9 @@ class Renderer:
             self._release_target(target)
         self._targets.clear()
         self.ctx.detect_framebuffer(0).use()
+        # Asking a surfaceless context's framebuffer 0 for its attachments may record an error
+        # on some drivers (not on llvmpipe); the binding itself is always valid.
+        _ = self.ctx.error
         for gpu in self._meshes.values():
             gpu.release()
         self._meshes.clear()
