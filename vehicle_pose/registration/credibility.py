@@ -57,12 +57,6 @@ its uniqueness is 0.5 (``docs/decisions/0020-view-sphere-search.md``: chosen on 
 real photos, checked on half b and on the partial views)."""
 
 
-OUTLINE_SEEN = 0.15
-"""The share of a pose's outline inside the frame at which it is half evidence: right poses of
-the real and photoreal benchmarks show 0.29 or more (a third of the car cut off by the frame),
-a model larger than the photo 0.08 (``docs/decisions/0032-outline-in-view.md``)."""
-
-
 def _edge_confidence(checks: dict[str, float]) -> float:
     """The confidence of a pose of the view-sphere search, or of any pose from a start camera:
     the evidence of a vehicle along the pose's outline, and without a start camera also the
@@ -71,10 +65,7 @@ def _edge_confidence(checks: dict[str, float]) -> float:
     - evidence: the pose's two-way chamfer leads the median of a ring of other views placed in
       its box (``edge_lead``; 0.5 at 0.20, 1 from 0.35) and explains most of the edges there
       (``two_way``; 0.5 at 0.70, 1 up to 0.55): noise leads nothing, an empty photo explains
-      nothing; and the outline those edges should follow is in view (``outline_seen``, the
-      share of the silhouette's boundary inside the frame; 0.5 at :data:`OUTLINE_SEEN`, 1 from
-      0.1 more): a model larger than the photo, its outline outside the frame all round, has
-      none to show;
+      nothing;
     - or the shading explains the photo (the loss over its maximum, 0.5 at 0.15): a render, a
       matte car;
     - uniqueness (no start camera): the relative margin over the best pose at least 15 degrees
@@ -82,9 +73,8 @@ def _edge_confidence(checks: dict[str, float]) -> float:
     """
     lead = float(np.clip((checks.get("edge_lead", 0.0) - 0.05) / 0.30, 0.0, 1.0))
     explained = float(np.clip((0.85 - checks["two_way"]) / 0.30, 0.0, 1.0))
-    seen = float(np.clip(0.5 + (checks.get("outline_seen", 1.0) - OUTLINE_SEEN) / 0.20, 0.0, 1.0))
     fit = float(np.clip((0.20 - checks.get("loss", 1.0)) / 0.10, 0.0, 1.0))
-    vehicle = max(fit, min(lead, explained, seen))
+    vehicle = max(fit, min(lead, explained))
     if checks.get("hinted"):
         return vehicle
     unique = float(np.clip(0.5 + 2.5 * (checks.get("margin", 0.0) - MARGIN), 0.0, 1.0))

@@ -27,7 +27,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -43,7 +42,7 @@ from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit, loss_share
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
-from vehicle_pose.registration.segmentation import OUTLINE_FACES, box_mask, resegment, silhouette
+from vehicle_pose.registration.segmentation import box_mask, resegment, silhouette
 from vehicle_pose.registration.structure import loss_at
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer
@@ -51,7 +50,7 @@ from vehicle_pose.search.templates import ViewTemplates, match, turn_to
 from vehicle_pose.search.views import Box, box_overflow
 from vehicle_pose.segment.region import VehicleRegion, find_vehicle
 
-__all__ = ["Pose", "SphereSearch", "sphere_search", "sphere_fit", "sphere_pose", "edge_evidence", "outline_seen", "RIVAL_APART"]
+__all__ = ["Pose", "SphereSearch", "sphere_search", "sphere_fit", "sphere_pose", "edge_evidence", "RIVAL_APART"]
 
 RIVAL_APART = 15.0
 """Degrees apart at which two refined poses are two poses rather than one found twice."""
@@ -444,8 +443,7 @@ def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Came
                   renderer: Renderer) -> dict[str, float]:
     """Evidence of a vehicle where a pose puts it: the pose's two-way chamfer over the box of its
     projection (cut to the frame), ``two_way``, and its lead over the median of a ring of views
-    of the model placed in the same box (every 30 degrees of azimuth), ``edge_lead``; and the
-    share of its outline that lies inside the frame, ``outline_seen`` (:func:`outline_seen`).
+    of the model placed in the same box (every 30 degrees of azimuth), ``edge_lead``.
 
     A photo whose edges a vehicle explains leads by 0.3-0.6 at the right pose; on a photo of
     noise, or one without edges, every view fits alike and the lead is about 0.
@@ -454,8 +452,7 @@ def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Came
     cam = camera.scaled(w, h)
     box = _seen_box(cam, model, 2.0)
     if box is None:
-        return {"two_way": 2.0, "edge_lead": 0.0, "outline_seen": 0.0}
-    seen = outline_seen(model, camera, renderer)
+        return {"two_way": 2.0, "edge_lead": 0.0}
     image = resized(work, w, h)
     chamfer = TwoWayChamfer(image, region=box, tau=options.structure.anchor_tau, crease=options.terms.edge_crease)
     mesh = model.exterior(options.pyramid.min_faces, renderer)
@@ -466,42 +463,13 @@ def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Came
     distance = views[np.argmin(np.abs(views[:, 2] - 4.0)), 2]
     ring = np.flatnonzero((views[:, 1] == elevation) & (views[:, 2] == distance) & (np.mod(views[:, 0], 30.0) == 0))
     bw, bh = box[2] - box[0], box[3] - box[1]
-    views_placed = []
+    others = []
     for t in ring:
         tb = templates.boxes[t]
         f = float(np.sqrt(bw / (tb[2] - tb[0]) * bh / (tb[3] - tb[1])))
         u = 0.5 * (box[0] + box[2]) - f * 0.5 * (tb[0] + tb[2])
         v = 0.5 * (box[1] + box[3]) - f * 0.5 * (tb[1] + tb[3])
-        views_placed.append(templates.camera(int(t), f, u, v, (float(cam.K[0, 2]), float(cam.K[1, 2])), w, h))
-    others = [chamfer(frame) for frame in renderer.render_many(mesh, views_placed)]
+        view = templates.camera(int(t), f, u, v, (float(cam.K[0, 2]), float(cam.K[1, 2])), w, h)
+        others.append(chamfer(renderer.render(mesh, view)))
     typical = float(np.median(others)) if others else cost
-    return {"two_way": float(cost), "edge_lead": float(1.0 - cost / max(typical, 1e-9)), "outline_seen": seen}
-
-
-_OUTLINE_SIZE = 120  # the frame's longer side (pixels) at which the outline's share is measured
-
-
-def outline_seen(model: VehicleModel, camera: Camera, renderer: Renderer) -> float:
-    """The share of a pose's outline (the silhouette's boundary) that lies inside the frame.
-
-    The outline is what edge evidence of a whole vehicle rests on, and beyond the frame nothing
-    is known: a pose whose outline runs outside the frame all round (a model larger than the
-    photo) shows no outline to verify, however its inner edges fit. The silhouette is drawn at
-    :data:`_OUTLINE_SIZE` pixels on a canvas five times the frame's size with the frame in its
-    middle; the boundary pixels inside the frame (its own border rows and columns excepted)
-    over all of them. A whole car in view scores 0.8-1, one cut by the frame by a third 0.3-0.7
-    (the real and photoreal benchmarks' right poses, docs/decisions/0032-outline-in-view.md).
-    """
-    s = _OUTLINE_SIZE / max(camera.width, camera.height)
-    w, h = max(8, round(camera.width * s)), max(8, round(camera.height * s))
-    small = camera.scaled(w, h)
-    K = small.K.copy()
-    K[0, 2] += 2 * w
-    K[1, 2] += 2 * h
-    canvas = Camera(K, small.R, small.t, 5 * w, 5 * h)
-    cover = renderer.render(model.lod(OUTLINE_FACES), canvas).coverage.astype(np.uint8)
-    boundary = cover.astype(bool) & ~cv2.erode(cover, np.ones((3, 3), np.uint8), borderValue=0).astype(bool)
-    total = int(boundary.sum())
-    if total == 0:
-        return 0.0
-    return float(boundary[2 * h + 1 : 3 * h - 1, 2 * w + 1 : 3 * w - 1].sum() / total)
+    return {"two_way": float(cost), "edge_lead": float(1.0 - cost / max(typical, 1e-9))}
