@@ -69,7 +69,7 @@ def _run(model, renderer, photo, truth, options, foreground=None, tiles=None, na
     res = register(photo, model, options=options, renderer=renderer, foreground=foreground)
     r = {"error_px": projection_error(model.mesh.vertices, res.camera, truth), "seconds": res.seconds,
          "failed": res.failed, "confidence": res.confidence, "checks": res.checks, "method": res.start_method,
-         "loss": res.loss}
+         "loss": res.loss, "camera": res.camera.to_dict()}
     if tiles is not None:
         tiles.append(overlay_pair(photo, model, res.start_camera, res.camera, renderer,
                                   f"{name} start ({r['method']})", f"final {r['error_px']:.1f} px conf "
