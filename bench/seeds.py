@@ -60,8 +60,16 @@ def compare(runs: list[dict[str, dict]]) -> tuple[list[dict], list[dict]]:
                      "spread of medians": float(np.ptp(medians)),
                      "median of means": float(np.median(errors[pick].mean(axis=1))),
                      "median case range": float(np.median(np.ptp(errors[pick], axis=1))),
-                     "worse by 2": " ".join(str(int(w)) for w in worsened[pick].sum(axis=0))})
+                     "worse by 2": " ".join(str(int(w)) for w in worsened[pick].sum(axis=0)),
+                     "worse by 2 each run": [int(w) for w in worsened[pick].sum(axis=0)]})
     return rows, per_case
+
+
+def _worse_total(row: dict) -> int:
+    """A row's runs worse by 2, summed: from its counts, or (reports written before they were
+    kept) from the table's string of them."""
+    counts = row.get("worse by 2 each run")
+    return sum(counts) if counts is not None else sum(int(w) for w in row["worse by 2"].split())
 
 
 def against(rows: list[dict], earlier: Path) -> list[dict]:
@@ -75,8 +83,7 @@ def against(rows: list[dict], earlier: Path) -> list[dict]:
             continue
         out.append({"half": r["half"], "median of means before": b["median of means"],
                     "median of means now": r["median of means"],
-                    "worse by 2 before": sum(int(w) for w in b["worse by 2"].split()),
-                    "worse by 2 now": sum(int(w) for w in r["worse by 2"].split()),
+                    "worse by 2 before": _worse_total(b), "worse by 2 now": _worse_total(r),
                     "case range before": b["median case range"], "case range now": r["median case range"]})
     return out
 
@@ -117,7 +124,7 @@ def main() -> None:
     if len(paths) < 2:
         raise SystemExit("give at least two reports, or two seeds")
     rows, per_case = compare([{r["case"]: r for r in json.loads(p.read_text())["runs"]} for p in paths])
-    print(table(rows, list(rows[0])))
+    print(table(rows, [k for k in rows[0] if k != "worse by 2 each run"]))
     report = {"reports": [str(p) for p in paths], "rows": rows, "cases": per_case}
     if args.against is not None:
         report["against"] = str(args.against)
