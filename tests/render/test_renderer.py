@@ -321,3 +321,23 @@ def test_a_renderer_that_drew_layers_releases_them(ctx, sedan):
     renderer.release()
     assert not renderer._targets and ctx.error == "GL_NO_ERROR"
     assert Renderer(ctx).render(mesh, _about(mesh, 1)[0]).pixel_count > 0
+
+
+def test_a_driver_that_will_not_make_layered_targets_draws_poses_one_at_a_time(ctx, sedan, monkeypatch):
+    import vehicle_pose.render.renderer as rendering
+    from vehicle_pose.errors import RenderError
+
+    def refuse(*args, **kwargs):
+        raise RenderError("the layered framebuffer is incomplete")
+
+    monkeypatch.setattr(rendering, "LayeredTarget", type("Refused", (), {"__init__": refuse,
+                                                                         "nbytes": rendering.LayeredTarget.nbytes}))
+    renderer = Renderer(ctx)
+    try:
+        mesh = sedan.exterior(4096, renderer)
+        cams = _about(mesh, 5)
+        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, renderer.render_many(mesh, cams),
+                                                                         strict=True))
+        assert not renderer.draws_layers
+    finally:
+        renderer.release()

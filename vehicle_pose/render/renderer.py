@@ -464,7 +464,7 @@ class Renderer:
     @property
     def draws_layers(self) -> bool:
         """Whether :meth:`render_many` draws poses together on this context."""
-        return self._layered is not None
+        return self.layers and self._layered is not None
 
     @cached_property
     def _layered(self) -> moderngl.Program | None:
@@ -488,11 +488,17 @@ class Renderer:
             self._targets.move_to_end((width, height))
             return target
         layers = min(MAX_LAYERS, _LAYER_BUDGET // LayeredTarget.nbytes(width, height, 1))
-        if layers < 2 or self._layered is None:
+        if layers < 2 or not self.draws_layers:
             return None
         while len(self._targets) >= 2:
             self._release_target(self._targets.pop(next(iter(self._targets))))
-        target = self._targets[(width, height)] = LayeredTarget(self.ctx, width, height, layers)
+        try:
+            target = LayeredTarget(self.ctx, width, height, layers)
+        except RenderError as exc:  # a driver that will not make the layered framebuffer
+            log.info("poses are drawn one at a time: %s", exc)
+            self.layers = False
+            return None
+        self._targets[(width, height)] = target
         return target
 
     def _release_target(self, target: LayeredTarget) -> None:
