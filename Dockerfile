@@ -10,7 +10,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     VP_MODELS_DIR=/srv/vehicle_models
 
 RUN apt-get update \
- && apt-get install -y --no-install-recommends libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libglvnd0 \
+ && apt-get install -y --no-install-recommends libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libglvnd0 libopengl0 \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --create-home --uid 1000 vp
 

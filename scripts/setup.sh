@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Create .venv/ at the repository root and install the engine, the service and the test tools.
-# Installs from Debian's packages what is missing (needs root or sudo): Mesa's EGL driver,
+# Installs from Debian's packages what is missing (needs root or sudo): Mesa's EGL driver and
+# glvnd's OpenGL library,
 # redis-server (the embedded broker of vehicle-pose-service), and for the tests chromium (the
 # admin page in a real browser) and postgresql (the database of the scaled-out set-up).
 set -euo pipefail
@@ -8,6 +9,8 @@ cd "$(dirname "$0")/.."
 
 need_apt=()
 ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so' || need_apt+=(libegl-mesa0 libegl1 libgl1-mesa-dri libgbm1)
+# The GL calls made through ctypes (the exterior pass's lanes, the layered draws) load libOpenGL.
+ldconfig -p 2>/dev/null | grep -q 'libOpenGL.so.0' || need_apt+=(libopengl0)
 command -v redis-server >/dev/null || need_apt+=(redis-server)
 command -v chromium >/dev/null || need_apt+=(chromium)
 ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || need_apt+=(postgresql)

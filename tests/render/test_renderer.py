@@ -7,6 +7,7 @@ import pytest
 import trimesh
 
 from vehicle_pose.geometry.camera import Camera, look_at_camera
+from vehicle_pose.render.layers import supported
 from vehicle_pose.render.renderer import Frame, Renderer
 
 from helpers import mesh_from_trimesh
@@ -257,7 +258,7 @@ def test_poses_drawn_together_equal_each_drawn_alone_bit_for_bit(renderer, sedan
     cams[7] = Camera(K, np.eye(3), np.array([0.0, 0.0, -50.0]), 320, 240)  # behind the camera
     cams[40] = Camera(K, np.eye(3), np.array([500.0, 0.0, 5.0]), 320, 240)  # off-screen
     together = renderer.render_many(mesh, cams)
-    assert renderer.draws_layers
+    assert renderer.draws_layers == supported(renderer.ctx)  # llvmpipe and NVIDIA's drivers can
     assert len(together) == len(cams)
     assert together[7].pixel_count == together[40].pixel_count == 0
     assert sum(f.pixel_count > 0 for f in together) > 140
@@ -317,7 +318,7 @@ def test_a_renderer_that_drew_layers_releases_them(ctx, sedan):
     renderer = Renderer(ctx)
     mesh = sedan.exterior(4096, renderer)
     assert renderer.render_many(mesh, _about(mesh, 4))[0].pixel_count > 0
-    assert renderer._targets
+    assert bool(renderer._targets) == supported(ctx)
     renderer.release()
     assert not renderer._targets and ctx.error == "GL_NO_ERROR"
     assert Renderer(ctx).render(mesh, _about(mesh, 1)[0]).pixel_count > 0
