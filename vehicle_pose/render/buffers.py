@@ -94,7 +94,6 @@ class GpuMesh:
             r.release()  # type: ignore[attr-defined]
         self._resources.clear()
         self._draws.clear()
-        self.draws = []
         self.draws.clear()
         self.texture = None
 

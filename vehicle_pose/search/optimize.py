@@ -87,20 +87,18 @@ class Counted:
         self.best_f = np.inf
 
     def __call__(self, x: FloatArray) -> float:
-        self.count += 1
-        f = float(self.fun(x))
-        if f < self.best_f:
-            self.best_f, self.best_x = f, np.array(x, dtype=np.float64)
-        return f
+        return self._keep(x, float(self.fun(x)))
 
     def many(self, xs: FloatArray) -> list[float]:
         """The values at the rows of ``xs`` (:func:`evaluate`), counted and kept as one by one."""
-        values = evaluate(self.fun, xs)
-        for x, f in zip(xs, values, strict=True):
-            self.count += 1
-            if f < self.best_f:
-                self.best_f, self.best_x = f, np.array(x, dtype=np.float64)
-        return values
+        return [self._keep(x, f) for x, f in zip(xs, evaluate(self.fun, xs), strict=True)]
+
+    def _keep(self, x: FloatArray, f: float) -> float:
+        """Count one evaluation, ``f`` at ``x``, and remember it if it is the best so far."""
+        self.count += 1
+        if f < self.best_f:
+            self.best_f, self.best_x = f, np.array(x, dtype=np.float64)
+        return f
 
     def result(self, restarts: int = 0) -> OptimizeResult:
         """The best point seen, its value and the evaluation count."""
