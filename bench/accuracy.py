@@ -110,6 +110,22 @@ def losses(n: int) -> dict:
     return {"rows": rows, "runs": runs}
 
 
+def oracle_mask(shared: Path, case: Path, gt: dict) -> np.ndarray:
+    """The case's true vehicle mask: its own ``mask.npy``, or for a case cut by the frame
+    (``gt["partial"]``) the source case's mask cut by the same crop (the renders cut by the
+    frame point to their sources' folder through ``models.json``)."""
+    if (case / "mask.npy").exists():
+        return np.load(case / "mask.npy")
+    part = gt.get("partial")
+    if not part:
+        raise SystemExit(f"{case}: no mask.npy and no source case to cut one from")
+    catalogue = json.loads((shared / "models.json").read_text())
+    mesh = (shared / catalogue[0]["mesh"]).resolve()
+    source_root = next(p for p in mesh.parents if (p / "cases" / part["source"]).is_dir())
+    x0, y0, x1, y1 = part["crop_xyxy"]
+    return np.load(source_root / "cases" / part["source"] / "mask.npy")[y0:y1, x0:x1]
+
+
 def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracle: bool = False,
               use_box: bool = True) -> dict:
     renderer, out, tiles = Renderer(), [], []
@@ -117,7 +133,7 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
         truth = Camera.from_dict(gt)
         hint = json.loads((case / ("init.json" if start_name == "box" else start_name)).read_text())
         start = None if start_name == "box" else Camera.from_dict(hint)
-        mask = np.load(case / "mask.npy") if oracle else None
+        mask = oracle_mask(shared, case, gt) if oracle else None
         box = hint.get("bbox") if use_box else None
         photo = load_photo(case / "photo.jpg")
         r = run_one(model, renderer, photo, truth, start, options, foreground=mask, bbox=box)
