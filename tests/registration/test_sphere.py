@@ -78,6 +78,9 @@ def test_no_hint_tells_a_symmetric_outline_front_from_back(symmetric, renderer):
     result = register(photo, symmetric, renderer=renderer)
     assert rotation_error(result.camera.R, truth.R) < 10.0
     assert result.start_method == "view-sphere"
+    # The shading confirmed the pose and judged its half-turn twin: the twin's polished loss is
+    # higher by more than the margin that makes the pose unique (0.15).
+    assert result.pose_stage == "shading" and result.checks["shading_margin"] > 0.15 and not result.failed
 
 
 @pytest.mark.slow

@@ -40,7 +40,7 @@ def confidence(checks: dict[str, float]) -> float:
     """
     if "two_way" in checks:
         return _edge_confidence(checks)
-    unique = (checks.get("margin", 0.0) + 0.05) / 0.40
+    unique = _loss_uniqueness(checks.get("margin", 0.0))
     if checks.get("photo_search"):
         u = float(np.clip(unique, 0.0, 1.0))
         cues = 0.5 + 0.5 * u if checks.get("cues_agree") else 0.45 * u
@@ -49,6 +49,12 @@ def confidence(checks: dict[str, float]) -> float:
     fit = (0.20 - checks.get("loss", 1.0)) / 0.10
     region = (checks.get("region_iou", 0.0) - 0.5) / 0.40
     return float(np.clip(min(fit, unique, region), 0.0, 1.0))
+
+
+def _loss_uniqueness(margin: float) -> float:
+    """Uniqueness from the relative margin of a pose's loss over the best other pose's, 0.5 at
+    0.15 and 1 from 0.35 (unclipped; ``docs/decisions/0008-confidence.md``)."""
+    return (margin + 0.05) / 0.40
 
 
 MARGIN = 0.065
@@ -69,7 +75,11 @@ def _edge_confidence(checks: dict[str, float]) -> float:
     - or the shading explains the photo (the loss over its maximum, 0.5 at 0.15): a render, a
       matte car;
     - uniqueness (no start camera): the relative margin over the best pose at least 15 degrees
-      away (``margin``; 0.5 at :data:`MARGIN`, 1 from 0.2 more).
+      away (``margin``; 0.5 at :data:`MARGIN`, 1 from 0.2 more); where the shading confirmed the
+      pose and judged its rival (``shading_margin``), the relative margin of the two poses'
+      losses instead, scored as the classic chain scores it (0.5 at 0.15, 1 from 0.35): there
+      the shading, not the edges, chose the pose
+      (``docs/decisions/0033-the-shading-judges-its-rival.md``).
     """
     lead = float(np.clip((checks.get("edge_lead", 0.0) - 0.05) / 0.30, 0.0, 1.0))
     explained = float(np.clip((0.85 - checks["two_way"]) / 0.30, 0.0, 1.0))
@@ -77,7 +87,10 @@ def _edge_confidence(checks: dict[str, float]) -> float:
     vehicle = max(fit, min(lead, explained))
     if checks.get("hinted"):
         return vehicle
-    unique = float(np.clip(0.5 + 2.5 * (checks.get("margin", 0.0) - MARGIN), 0.0, 1.0))
+    if "shading_margin" in checks:
+        unique = float(np.clip(_loss_uniqueness(checks["shading_margin"]), 0.0, 1.0))
+    else:
+        unique = float(np.clip(0.5 + 2.5 * (checks.get("margin", 0.0) - MARGIN), 0.0, 1.0))
     return min(unique, vehicle)
 
 

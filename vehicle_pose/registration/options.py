@@ -237,6 +237,10 @@ class Structure(_Group):
                                      "pose found without a start camera", low=20, high=5000)
     shading_polish: float = option(0.45, "loss over its maximum of the edges' pose up to which the shading fit "
                                    "polishes it", low=0.0, high=1.0)
+    rival_polish: bool = option(True, "without a start camera, where the polish is credible: the refined pose "
+                                "at least 15 degrees away that the shading explains best is polished too, the "
+                                "lower loss wins and the two losses' margin is the pose's uniqueness "
+                                "(docs/decisions/0033-the-shading-judges-its-rival.md)")
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,8 @@
    plus the cost of leaving it).
 5. **Choice**: the refined pose of lowest cost; its margin over the best pose at least
    :data:`RIVAL_APART` degrees away and its lead over the typical placed template say how
-   credible it is.
+   credible it is. Where the shading explains the photo, the shading fit polishes the pose it
+   explains best and judges it against its best rival (:func:`sphere_pose`).
 """
 
 from __future__ import annotations
@@ -398,8 +399,9 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     that loss over its maximum is at most ``shading_polish`` (a render, a matte car), the
     coarse-to-fine shading fit runs from it and its pose is kept when its loss is at most
     ``shading_trust`` (the loss then explains the photo, and fits it more precisely than the
-    edges); else the search's pose stands. Returns the fit, the search and which stage's pose
-    it is (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the
+    edges), once the shading has judged it against its rival (:func:`_against_rival`, where
+    ``rival_polish``); else the search's pose stands. Returns the fit, the search and which
+    stage's pose it is (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the
     shading fit searches the focal length within it (where the shading explains the photo, it
     tells the focal length more precisely than a rounded EXIF). ``deadline`` is offered the
     search's pose before the polish.
@@ -425,8 +427,42 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         polished = fit(work, model, bests[k].camera, options, plan, renderer, optimizer, progress, foreground,
                        box=box)
         if loss_share(polished.loss, work, options.color) <= st.shading_trust:
-            return polished, _promoted(searched, bests[k]), "shading"
+            if not st.rival_polish:
+                return polished, _promoted(searched, bests[k]), "shading"
+
+            def polish(pose: Pose) -> Fit:
+                return fit(work, model, pose.camera, options, plan, renderer, optimizer, progress, foreground, box=box)
+
+            polished, k, margin = _against_rival(polished, k, bests, shares, polish, work, options)
+            promoted = _promoted(searched, bests[k])
+            promoted.checks["shading_margin"] = margin
+            return polished, promoted, "shading"
     return sphere_fit(work, model, searched, options, renderer, box), searched, "structure"
+
+
+def _against_rival(polished: Fit, k: int, bests: list[Pose], shares: list[float], polish: Callable[[Pose], Fit],
+                   work: npt.NDArray[np.uint8], options: RegistrationOptions) -> tuple[Fit, int, float]:
+    """The shading's own verdict between the polished pose (of refined pose ``k``) and its rival:
+    the refined pose at least :data:`RIVAL_APART` degrees away whose loss (``shares``) is lowest,
+    polished too where the shading may explain it (at most ``shading_polish``). The lower final
+    loss wins; the relative margin between the two losses is the winner's uniqueness, 1 where no
+    rival is polished or where the rival's polish ends within :data:`RIVAL_APART` of the polished
+    pose (the same pose found twice). Returns the winning fit, its refined pose's index and the
+    margin (``docs/decisions/0033-the-shading-judges-its-rival.md``)."""
+    rivals = [i for i, p in enumerate(bests) if rotation_error(p.camera.R, bests[k].camera.R) >= RIVAL_APART]
+    if not rivals:
+        return polished, k, 1.0
+    j = min(rivals, key=lambda i: shares[i])
+    if shares[j] > options.structure.shading_polish:
+        return polished, k, 1.0
+    other = polish(bests[j])
+    mine, theirs = (loss_share(f.loss, work, options.color) for f in (polished, other))
+    apart = rotation_error(other.camera.R, polished.camera.R)
+    if theirs < mine:
+        polished, k, mine, theirs = other, j, theirs, mine
+    if apart < RIVAL_APART:
+        return polished, k, 1.0
+    return polished, k, (theirs - mine) / max(theirs, 1e-9)
 
 
 def _promoted(searched: SphereSearch, pose: Pose) -> SphereSearch:
