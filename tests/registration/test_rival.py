@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vehicle_pose import Camera, RegistrationOptions
+from vehicle_pose.errors import PoseError
 from vehicle_pose.registration.credibility import confidence
 from vehicle_pose.registration.fit import Fit
 from vehicle_pose.registration.result import LevelReport
@@ -69,6 +70,14 @@ def test_no_rival_is_polished_where_none_is_apart_or_the_shading_cannot_explain_
     polish = _Polish({})
     fitted, k, margin = _against_rival(_fit(1.0, 0.06), 0, _poses(*azimuths), shares, polish, WORK, OPTIONS)
     assert polish.ran == [] and k == 0 and margin == 1.0 and fitted.loss == 0.06
+
+
+def test_a_rival_no_fit_can_start_from_is_no_rival():
+    def polish(pose: Pose) -> Fit:
+        raise PoseError("the start pose does not show the left side's wheels")
+
+    fitted, k, margin = _against_rival(_fit(1.0, 0.06), 0, _poses(0.0, 180.0), [0.2, 0.25], polish, WORK, OPTIONS)
+    assert k == 0 and margin == 1.0 and fitted.loss == 0.06
 
 
 @pytest.mark.parametrize("shading_margin,credible", [(0.5, True), (0.2, True), (0.05, False), (-0.1, False)])

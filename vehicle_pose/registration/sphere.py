@@ -446,8 +446,9 @@ def _against_rival(polished: Fit, k: int, bests: list[Pose], shares: list[float]
     the refined pose at least :data:`RIVAL_APART` degrees away whose loss (``shares``) is lowest,
     polished too where the shading may explain it (at most ``shading_polish``). The lower final
     loss wins; the relative margin between the two losses is the winner's uniqueness, 1 where no
-    rival is polished or where the rival's polish ends within :data:`RIVAL_APART` of the polished
-    pose (the same pose found twice). Returns the winning fit, its refined pose's index and the
+    rival is polished (none apart, none the shading may explain, or none a fit can start from)
+    or where the rival's polish ends within :data:`RIVAL_APART` of the polished pose (the same
+    pose found twice). Returns the winning fit, its refined pose's index and the
     margin (``docs/decisions/0033-the-shading-judges-its-rival.md``)."""
     rivals = [i for i, p in enumerate(bests) if rotation_error(p.camera.R, bests[k].camera.R) >= RIVAL_APART]
     if not rivals:
@@ -455,7 +456,10 @@ def _against_rival(polished: Fit, k: int, bests: list[Pose], shares: list[float]
     j = min(rivals, key=lambda i: shares[i])
     if shares[j] > options.structure.shading_polish:
         return polished, k, 1.0
-    other = polish(bests[j])
+    try:
+        other = polish(bests[j])
+    except PoseError:
+        return polished, k, 1.0  # no fit from the rival (its wheels' side not in view): no rival
     mine, theirs = (loss_share(f.loss, work, options.color) for f in (polished, other))
     apart = rotation_error(other.camera.R, polished.camera.R)
     if theirs < mine:
