@@ -423,16 +423,15 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         plan = FitPlan(options.pyramid.coarse_to_fine, st.polish_evaluations,
                        options.segmentation.grabcut and options.segmentation.resegment, options.terms.edge_weight,
                        focal_band=focal_band)
-        # The polish's levels are not offered to the deadline: its pose stands only if credible.
-        polished = fit(work, model, bests[k].camera, options, plan, renderer, optimizer, progress, foreground,
-                       box=box)
+
+        def polish(pose: Pose) -> Fit:
+            # The polish's levels are not offered to the deadline: its pose stands only if credible.
+            return fit(work, model, pose.camera, options, plan, renderer, optimizer, progress, foreground, box=box)
+
+        polished = polish(bests[k])
         if loss_share(polished.loss, work, options.color) <= st.shading_trust:
             if not st.rival_polish:
                 return polished, _promoted(searched, bests[k]), "shading"
-
-            def polish(pose: Pose) -> Fit:
-                return fit(work, model, pose.camera, options, plan, renderer, optimizer, progress, foreground, box=box)
-
             polished, k, margin = _against_rival(polished, k, bests, shares, polish, work, options)
             promoted = _promoted(searched, bests[k])
             promoted.checks["shading_margin"] = margin
