@@ -1,7 +1,7 @@
 """The phone's focal length: a registration with the photo's EXIF focal length against the same
 photo with its EXIF stripped.
 
-Usage: .venv/bin/python bench/exif.py [--views N] [--seed S] [--tag TAG]
+Usage: .venv/bin/python bench/exif.py [--views N] [--seed S] [--option KEY=VALUE ...] [--tag TAG]
 
 For every shipped model, ``--views`` random views (:func:`random_framed_view`: azimuth all
 round, elevation 3-30 degrees, the car 40-80 % of a 640x480 frame), each with a lens drawn
@@ -29,7 +29,7 @@ import io
 import numpy as np
 from PIL import ExifTags, Image
 
-from vehicle_pose import RegistrationOptions, register
+from vehicle_pose import register
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import projection_error, rotation_error
 from vehicle_pose.model.library import ModelLibrary
@@ -39,7 +39,7 @@ from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import random_framed_view, synthesize, synthesize_hazard
 from vehicle_pose.search.views import view_camera
 
-from common import publish
+from common import parse_options, publish
 
 W, H = 640, 480
 SENSOR_MM = 5.6  # a phone's main sensor width, for the focal plane form
@@ -90,8 +90,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tag", default="")
     ap.add_argument("--tolerance", type=float, default=None, help="exif_tolerance (default: the option's default)")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a registration option (repeatable), as bench/real.py takes it")
     args = ap.parse_args()
-    options = RegistrationOptions()
+    options = parse_options(args.option)
     if args.tolerance is not None:
         options = options.replace(exif_tolerance=args.tolerance)
     rng = np.random.default_rng(args.seed)
