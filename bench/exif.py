@@ -89,13 +89,10 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tag", default="")
-    ap.add_argument("--tolerance", type=float, default=None, help="exif_tolerance (default: the option's default)")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a registration option (repeatable), as bench/real.py takes it")
     args = ap.parse_args()
     options = parse_options(args.option)
-    if args.tolerance is not None:
-        options = options.replace(exif_tolerance=args.tolerance)
     rng = np.random.default_rng(args.seed)
     renderer = Renderer()
     lib = ModelLibrary()
