@@ -79,7 +79,9 @@ def _edge_confidence(checks: dict[str, float]) -> float:
       pose and judged its rival (``shading_margin``), the relative margin of the two poses'
       losses instead, scored as the classic chain scores it (0.5 at 0.15, 1 from 0.35): there
       the shading, not the edges, chose the pose
-      (``docs/decisions/0033-the-shading-judges-its-rival.md``).
+      (``docs/decisions/0033-the-shading-judges-its-rival.md``). Where the edges chose and the
+      search sizes voted without all agreeing (``sizes_agree`` under 1), at most half that
+      share: the edges do not decide the pose (``docs/decisions/0036-sizes-vote.md``).
     """
     lead = float(np.clip((checks.get("edge_lead", 0.0) - 0.05) / 0.30, 0.0, 1.0))
     explained = float(np.clip((0.85 - checks["two_way"]) / 0.30, 0.0, 1.0))
@@ -91,6 +93,9 @@ def _edge_confidence(checks: dict[str, float]) -> float:
         unique = float(np.clip(_loss_uniqueness(checks["shading_margin"]), 0.0, 1.0))
     else:
         unique = float(np.clip(0.5 + 2.5 * (checks.get("margin", 0.0) - MARGIN), 0.0, 1.0))
+        agree = checks.get("sizes_agree", 1.0)
+        if agree < 1.0:
+            unique = min(unique, 0.5 * agree)
     return min(unique, vehicle)
 
 

@@ -78,8 +78,8 @@ class Pose:
 
 @dataclass
 class SphereSearch:
-    """The refined poses (best first), the ranked ones, the targets, the time spent, the checks
-    and the templates searched."""
+    """The refined poses (best first), the ranked ones, the targets, the time spent, the checks,
+    the templates searched and the cost each target's poses were scored by."""
 
     refined: list[Pose]
     ranked: list[Pose]
@@ -87,6 +87,7 @@ class SphereSearch:
     seconds: float
     checks: dict[str, float]
     templates: ViewTemplates
+    costs: list[Callable[[Camera], float]] = field(default_factory=list)
 
     @property
     def best(self) -> Pose:
@@ -283,10 +284,13 @@ def sphere_search(
     box: Box | None = None,
     progress: Progress | None = None,
     focal_band: tuple[float, float] | None = None,
+    targets: list[Target] | None = None,
 ) -> SphereSearch:
     """The pose on the working photo ``work`` from the hints (the module docstring).
 
     ``init`` is a start camera and ``box`` the client's box, both for the working photo.
+    ``targets`` are those of an earlier search of the same photo and hints (found again
+    without).
     ``focal_band`` (image widths, low and high; a lens known from the photo's EXIF) holds the
     focal length: each placed template is taken to the band's geometric middle by a dolly
     zoom (its size at the pivot kept) before it is ranked, and refined there (the edges do not
@@ -299,7 +303,8 @@ def sphere_search(
     tick = None if progress is None else lambda: progress("view sphere: finding the vehicle", 0, float("nan"))
     if tick is not None:
         tick()
-    targets = _targets(work, model, init, box, tick)
+    if targets is None:
+        targets = _targets(work, model, init, box, tick)
     w, h = _search_size(work, options)
     sx, sy = w / Wf, h / Hf
     image = resized(work, w, h)
@@ -361,7 +366,7 @@ def sphere_search(
         "margin": (min(rivals) - best.cost) / max(min(rivals), 1e-9) if rivals else 1.0,
         "rank_lead": 1.0 - best.cost / max(typical, 1e-9),
     }
-    return SphereSearch(refined, ranked, targets, time.perf_counter() - t0, checks, templates)
+    return SphereSearch(refined, ranked, targets, time.perf_counter() - t0, checks, templates, list(costs))
 
 
 def sphere_fit(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereSearch, options: RegistrationOptions,
@@ -393,23 +398,53 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
                 foreground: npt.NDArray[np.bool_] | None = None, progress: Progress | None = None,
                 focal_band: tuple[float, float] | None = None,
                 deadline: Deadline | None = None) -> tuple[Fit, SphereSearch, str]:
-    """The search's pose, polished by the shading fit where the shading may explain the photo.
+    """The search's pose, polished by the shading fit where the shading may explain the photo,
+    else voted on by the search at other sizes.
 
     The search's pose is segmented and scored by the named loss (:func:`sphere_fit`); where
     that loss over its maximum is at most ``shading_polish`` (a render, a matte car), the
     coarse-to-fine shading fit runs from it and its pose is kept when its loss is at most
     ``shading_trust`` (the loss then explains the photo, and fits it more precisely than the
     edges), once the shading has judged it against its rival (:func:`_against_rival`, where
-    ``rival_polish``); else the search's pose stands. Returns the fit, the search and which
-    stage's pose it is (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the
-    shading fit searches the focal length within it (where the shading explains the photo, it
-    tells the focal length more precisely than a rounded EXIF). ``deadline`` is offered the
-    search's pose before the polish.
+    ``rival_polish``). Else the edges decide: with ``sphere_votes``, the search runs again at
+    each of those sizes, and the sizes vote (:func:`_vote`); a pose of another size is offered
+    to the shading in the same way. Returns the fit, the search and which stage's pose it is
+    (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the shading fit
+    searches the focal length within it (where the shading explains the photo, it tells the
+    focal length more precisely than a rounded EXIF). ``deadline`` is offered the search's pose
+    before the polish.
     """
-    searched = sphere_search(work, model, model.templates(renderer), options, renderer, optimizer, init=init,
-                             box=box, progress=progress, focal_band=focal_band)
+    templates = model.templates(renderer)
+    searched = sphere_search(work, model, templates, options, renderer, optimizer, init=init, box=box,
+                             progress=progress, focal_band=focal_band)
     if deadline is not None:
         deadline.offer(searched.best.camera, "structure")
+    polished = _shading(work, model, searched, options, renderer, optimizer, box, foreground, progress, focal_band)
+    if polished is not None:
+        return polished
+    if options.search.sphere_votes:
+        others = [sphere_search(work, model, templates, options.replace(sphere_size=int(size)), renderer, optimizer,
+                                init=init, box=box, progress=progress, focal_band=focal_band,
+                                targets=searched.targets) for size in options.search.sphere_votes]
+        voted = _vote([searched, *others])
+        if voted.best is not searched.best:
+            polished = _shading(work, model, voted, options, renderer, optimizer, box, foreground, progress,
+                                focal_band)
+            if polished is not None:
+                fitted, confirmed, stage = polished
+                confirmed.checks["sizes_agree"] = voted.checks["sizes_agree"]
+                return fitted, confirmed, stage
+        searched = voted
+    return sphere_fit(work, model, searched, options, renderer, box), searched, "structure"
+
+
+def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereSearch, options: RegistrationOptions,
+             renderer: Renderer, optimizer: Optimizer, box: Box | None, foreground: npt.NDArray[np.bool_] | None,
+             progress: Progress | None, focal_band: tuple[float, float] | None
+             ) -> tuple[Fit, SphereSearch, str] | None:
+    """The shading fit from the search's refined pose that the shading explains best, where it
+    may explain it; its fit, the search with that pose first, and ``shading`` where the final
+    loss is credible (:func:`sphere_pose`); else None."""
     st = options.structure
     # Each refined pose scored by the named loss on its target's segmentation: where one is
     # explained by the shading (its loss over its maximum at most shading_polish), the shading
@@ -419,24 +454,47 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     shares = [loss_share(loss_at(work, searched.targets[p.target].mask, p.camera, model, options, renderer, w, h), work,
                          options.color) for p in bests]
     k = int(np.argmin(shares))
-    if shares[k] <= st.shading_polish:
-        plan = FitPlan(options.pyramid.coarse_to_fine, st.polish_evaluations,
-                       options.segmentation.grabcut and options.segmentation.resegment, options.terms.edge_weight,
-                       focal_band=focal_band)
+    if shares[k] > st.shading_polish:
+        return None
+    plan = FitPlan(options.pyramid.coarse_to_fine, st.polish_evaluations,
+                   options.segmentation.grabcut and options.segmentation.resegment, options.terms.edge_weight,
+                   focal_band=focal_band)
 
-        def polish(pose: Pose) -> Fit:
-            # The polish's levels are not offered to the deadline: its pose stands only if credible.
-            return fit(work, model, pose.camera, options, plan, renderer, optimizer, progress, foreground, box=box)
+    def polish(pose: Pose) -> Fit:
+        # The polish's levels are not offered to the deadline: its pose stands only if credible.
+        return fit(work, model, pose.camera, options, plan, renderer, optimizer, progress, foreground, box=box)
 
-        polished = polish(bests[k])
-        if loss_share(polished.loss, work, options.color) <= st.shading_trust:
-            if not st.rival_polish:
-                return polished, _promoted(searched, bests[k]), "shading"
-            polished, k, margin = _against_rival(polished, k, bests, shares, polish, work, options)
-            promoted = _promoted(searched, bests[k])
-            promoted.checks["shading_margin"] = margin
-            return polished, promoted, "shading"
-    return sphere_fit(work, model, searched, options, renderer, box), searched, "structure"
+    polished = polish(bests[k])
+    if loss_share(polished.loss, work, options.color) > st.shading_trust:
+        return None
+    if not st.rival_polish:
+        return polished, _promoted(searched, bests[k]), "shading"
+    polished, k, margin = _against_rival(polished, k, bests, shares, polish, work, options)
+    promoted = _promoted(searched, bests[k])
+    promoted.checks["shading_margin"] = margin
+    return polished, promoted, "shading"
+
+
+def _vote(searches: list[SphereSearch]) -> SphereSearch:
+    """The sizes' vote on the pose (the first search is at the working ``sphere_size``).
+
+    The edges seen at another size are the same edges, placed and thinned a little otherwise: a
+    pose they decide holds at every size, and where the best poses of two sizes are more than
+    :data:`RIVAL_APART` degrees apart, the edges cannot tell them (a near tie, most often a pose
+    and its half-turn twin). The pose chosen is, of the largest group of best poses within
+    :data:`RIVAL_APART` of each other, the one of lowest cost at the working size (the same
+    targets at every size); its search's checks gain ``sizes_agree``, the share of the sizes in
+    that group, and its time is that of all the searches
+    (``docs/decisions/0036-sizes-vote.md``)."""
+    first = searches[0]
+    bests = [s.best for s in searches]
+    groups = [[j for j, q in enumerate(bests) if rotation_error(p.camera.R, q.camera.R) < RIVAL_APART] for p in bests]
+    largest = max(len(g) for g in groups)
+    members = sorted({j for g in groups if len(g) == largest for j in g})
+    i = min(members, key=lambda j: (first.costs[bests[j].target](bests[j].camera), j))
+    voted = _promoted(searches[i], bests[i])
+    voted.checks["sizes_agree"] = len(groups[i]) / len(searches)
+    return replace(voted, seconds=sum(s.seconds for s in searches))
 
 
 def _against_rival(polished: Fit, k: int, bests: list[Pose], shares: list[float], polish: Callable[[Pose], Fit],
