@@ -37,3 +37,16 @@ def test_a_photo_search_pose_is_credible_when_its_two_cues_agree_on_a_vehicle(ma
         checks["edge_lead"] = lead
     assert confidence(checks) == pytest.approx(expected)
     assert (confidence(checks) >= 0.5) == (agree == 1.0 and lead is not None and lead >= 0.2)
+
+
+@pytest.mark.parametrize(
+    "agree,shading,expected",
+    [(1.0, False, 1.0), (2 / 3, False, 1 / 3), (1 / 3, False, 1 / 6), (2 / 3, True, 1.0)],
+)
+def test_a_pose_the_search_sizes_disagree_on_fails_unless_the_shading_chose_it(agree, shading, expected):
+    # A clear lead and margin: only the sizes' vote limits the confidence, and only where the
+    # edges chose the pose.
+    checks = {"two_way": 0.4, "edge_lead": 0.5, "margin": 0.5, "loss": 0.6, "sizes_agree": agree}
+    if shading:
+        checks |= {"loss": 0.05, "shading_margin": 0.5}
+    assert confidence(checks) == pytest.approx(expected)

@@ -13,7 +13,7 @@ from vehicle_pose.loss.edges import TwoWayChamfer
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.procedural import CarSpec, build_car
-from vehicle_pose.registration.sphere import REGION_BORDERS, _regions
+from vehicle_pose.registration.sphere import REGION_BORDERS, Pose, SphereSearch, _regions, _vote
 from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
 from vehicle_pose.search.views import view_camera
 from vehicle_pose.segment.region import find_vehicle
@@ -182,3 +182,45 @@ def test_the_regions_segmented_side_by_side_are_those_found_one_by_one(sedan, re
         alone = find_vehicle(photo, border=border)
         assert region.box == alone.box
         np.testing.assert_array_equal(region.mask, alone.mask)
+
+
+def _searched(camera: Camera, cost: float, others: dict[int, float], seconds: float) -> SphereSearch:
+    """A search whose best pose is ``camera``, scoring the cameras named in ``others`` (by id) as
+    given and any other camera as ``cost``."""
+    def score(c: Camera) -> float:
+        return others.get(id(c), cost)
+
+    best = Pose(camera, 0, 0, cost, cost)
+    return SphereSearch([best], [best], [], seconds, {"margin": 0.2}, None, [score])  # type: ignore[arg-type]
+
+
+def test_the_search_sizes_vote_for_the_pose_most_of_them_find(sedan):
+    """Two sizes find the half-turn twin of the working size's pose, a few degrees apart: the
+    twin outvotes it, as the one of the two that costs least at the working size, and the share
+    of the sizes that agree on it is two thirds; the time is the three searches'."""
+    pose = _framed(sedan, 40.0, 12.0, 0.8, 1.5)
+    twin, near = _framed(sedan, 220.0, 12.0, 0.8, 1.5), _framed(sedan, 226.0, 14.0, 0.8, 1.5)
+    working = _searched(pose, 0.30, {id(twin): 0.40, id(near): 0.35}, 1.0)
+    voted = _vote([working, _searched(twin, 0.5, {}, 2.0), _searched(near, 0.5, {}, 3.0)])
+    assert voted.best.camera is near
+    assert voted.checks["sizes_agree"] == pytest.approx(2 / 3) and voted.seconds == pytest.approx(6.0)
+    # The working size's pose stands where no other group outnumbers its own, even where another
+    # size's pose costs less at the working size.
+    agreed = _vote([_searched(pose, 0.3, {}, 1.0), _searched(_framed(sedan, 44.0, 12.0, 0.8, 1.5), 0.2, {}, 1.0)])
+    assert agreed.best.camera is pose and agreed.checks["sizes_agree"] == 1.0
+    side = _framed(sedan, 130.0, 12.0, 0.8, 1.5)
+    apart = _vote([_searched(pose, 0.3, {id(twin): 0.1}, 1.0), _searched(twin, 0.5, {}, 1.0),
+                   _searched(side, 0.5, {}, 1.0)])
+    assert apart.best.camera is pose and apart.checks["sizes_agree"] == pytest.approx(1 / 3)
+
+
+@pytest.mark.slow
+def test_where_the_edges_decide_every_search_size_finds_the_same_pose(sedan, renderer):
+    """No shading polish: the edges choose the pose, and the search at 200 and 320 pixels finds
+    the one it finds at 240."""
+    truth = _framed(sedan, 130.0, 12.0, 0.95, 1.2)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=5)
+    options = RegistrationOptions.from_flat(shading_polish=0.0, sphere_votes=(200, 320))
+    result = register(photo, sedan, renderer=renderer, options=options)
+    assert result.pose_stage == "structure" and result.checks["sizes_agree"] == 1.0 and not result.failed
+    assert projection_error(sedan, result.camera, truth) < 4.0

@@ -480,21 +480,24 @@ def _vote(searches: list[SphereSearch]) -> SphereSearch:
 
     The edges seen at another size are the same edges, placed and thinned a little otherwise: a
     pose they decide holds at every size, and where the best poses of two sizes are more than
-    :data:`RIVAL_APART` degrees apart, the edges cannot tell them (a near tie, most often a pose
-    and its half-turn twin). The pose chosen is, of the largest group of best poses within
-    :data:`RIVAL_APART` of each other, the one of lowest cost at the working size (the same
-    targets at every size); its search's checks gain ``sizes_agree``, the share of the sizes in
-    that group, and its time is that of all the searches
-    (``docs/decisions/0036-sizes-vote.md``)."""
+    :data:`RIVAL_APART` degrees apart, the edges cannot tell them apart (a near tie, most often
+    a pose and its half-turn twin). The working size's search stands, unless a group of the
+    other sizes' best poses within :data:`RIVAL_APART` of each other outnumbers the working
+    size's own group: then the search whose pose of that group costs least at the working size
+    (the targets are the same at every size). Its checks gain ``sizes_agree``, the share of the
+    sizes whose best pose is within :data:`RIVAL_APART` of its pose, and its time is that of all
+    the searches (``docs/decisions/0036-sizes-vote.md``)."""
     first = searches[0]
     bests = [s.best for s in searches]
     groups = [[j for j, q in enumerate(bests) if rotation_error(p.camera.R, q.camera.R) < RIVAL_APART] for p in bests]
     largest = max(len(g) for g in groups)
-    members = sorted({j for g in groups if len(g) == largest for j in g})
-    i = min(members, key=lambda j: (first.costs[bests[j].target](bests[j].camera), j))
-    voted = _promoted(searches[i], bests[i])
+    i = 0
+    if len(groups[0]) < largest:
+        members = {j for g in groups if len(g) == largest for j in g}
+        i = min(sorted(members), key=lambda j: first.costs[bests[j].target](bests[j].camera))
+    voted = replace(searches[i], checks=dict(searches[i].checks), seconds=sum(s.seconds for s in searches))
     voted.checks["sizes_agree"] = len(groups[i]) / len(searches)
-    return replace(voted, seconds=sum(s.seconds for s in searches))
+    return voted
 
 
 def _against_rival(polished: Fit, k: int, bests: list[Pose], shares: list[float], polish: Callable[[Pose], Fit],
