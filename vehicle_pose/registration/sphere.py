@@ -407,8 +407,9 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     ``shading_trust`` (the loss then explains the photo, and fits it more precisely than the
     edges), once the shading has judged it against its rival (:func:`_against_rival`, where
     ``rival_polish``). Else the edges decide: with ``sphere_votes``, the search runs again at
-    each of those sizes, and the sizes vote (:func:`_vote`); a pose of another size is offered
-    to the shading in the same way. Returns the fit, the search and which stage's pose it is
+    those sizes in turn until the poses of more than half of all the sizes agree (or none is
+    left), and the sizes vote (:func:`_vote`); a pose of another size is offered to the shading
+    in the same way. Returns the fit, the search and which stage's pose it is
     (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the shading fit
     searches the focal length within it (where the shading explains the photo, it tells the
     focal length more precisely than a rounded EXIF). ``deadline`` is offered the search's pose
@@ -422,11 +423,16 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     polished = _shading(work, model, searched, options, renderer, optimizer, box, foreground, progress, focal_band)
     if polished is not None:
         return polished
-    if options.search.sphere_votes:
-        others = [sphere_search(work, model, templates, options.replace(sphere_size=int(size)), renderer, optimizer,
-                                init=init, box=box, progress=progress, focal_band=focal_band,
-                                targets=searched.targets) for size in options.search.sphere_votes]
-        voted = _vote([searched, *others])
+    votes = options.search.sphere_votes
+    if votes:
+        searches = [searched]
+        for size in votes:
+            searches.append(sphere_search(work, model, templates, options.replace(sphere_size=int(size)), renderer,
+                                          optimizer, init=init, box=box, progress=progress, focal_band=focal_band,
+                                          targets=searched.targets))
+            if max(len(g) for g in _groups(searches)) > (1 + len(votes)) / 2:
+                break  # a majority of all the sizes: the rest cannot outvote it
+        voted = _vote(searches)
         if voted.best is not searched.best:
             polished = _shading(work, model, voted, options, renderer, optimizer, box, foreground, progress,
                                 focal_band)
@@ -475,6 +481,12 @@ def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereS
     return polished, promoted, "shading"
 
 
+def _groups(searches: list[SphereSearch]) -> list[list[int]]:
+    """For each search, the searches whose best pose is within :data:`RIVAL_APART` of its own."""
+    bests = [s.best for s in searches]
+    return [[j for j, q in enumerate(bests) if rotation_error(p.camera.R, q.camera.R) < RIVAL_APART] for p in bests]
+
+
 def _vote(searches: list[SphereSearch]) -> SphereSearch:
     """The sizes' vote on the pose (the first search is at the working ``sphere_size``).
 
@@ -486,10 +498,10 @@ def _vote(searches: list[SphereSearch]) -> SphereSearch:
     size's own group: then the search whose pose of that group costs least at the working size
     (the targets are the same at every size). Its checks gain ``sizes_agree``, the share of the
     sizes whose best pose is within :data:`RIVAL_APART` of its pose, and its time is that of all
-    the searches (``docs/decisions/0036-sizes-vote.md``)."""
+    the searches run (``docs/decisions/0036-sizes-vote.md``)."""
     first = searches[0]
     bests = [s.best for s in searches]
-    groups = [[j for j, q in enumerate(bests) if rotation_error(p.camera.R, q.camera.R) < RIVAL_APART] for p in bests]
+    groups = _groups(searches)
     largest = max(len(g) for g in groups)
     i = 0
     if len(groups[0]) < largest:
