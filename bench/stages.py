@@ -1,7 +1,7 @@
 """Where a registration's seconds go, per mode: the engine's stages, its renders and the rest.
 
 Usage: .venv/bin/python bench/stages.py [--cases N] [--modes hinted-photoreal,hinted-real,...]
-       [--real ../shared/real] [--photoreal ../shared/bench] [--tag T]
+       [--real ../shared/real] [--photoreal ../shared/bench] [--option KEY=VALUE ...] [--tag T]
 
 Modes: ``hinted-photoreal`` (start camera and box from each case's ``init.json``),
 ``hinted-real`` (the same on the real photos), ``none-real`` and ``none-photoreal`` (no hint).
@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 from real import load_models
 
-from vehicle_pose import RegistrationOptions
 from vehicle_pose.clock import clocked
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import VehicleModel
@@ -36,7 +35,7 @@ from vehicle_pose.photo import load_photo
 from vehicle_pose.registration.register import register
 from vehicle_pose.render.renderer import Renderer
 
-from common import photoreal_cases, table, write_report
+from common import parse_options, photoreal_cases, table, write_report
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 MODES = ("hinted-photoreal", "hinted-real", "none-real", "none-photoreal")
@@ -91,10 +90,12 @@ def main() -> None:
     ap.add_argument("--modes", default=",".join(MODES))
     ap.add_argument("--real", type=Path, default=SHARED / "real")
     ap.add_argument("--photoreal", type=Path, default=SHARED / "bench")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a registration option (repeatable; tuples as Python literals)")
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
     renderer = Renderer()
-    options = RegistrationOptions()
+    options = parse_options(args.option)
     runs: list[dict] = []
     prep: dict[str, float] = {}
     for mode in args.modes.split(","):
@@ -137,7 +138,7 @@ def main() -> None:
     gl = renderer.ctx.info
     name = "stages" + (f"_{args.tag}" if args.tag else "")
     print(write_report(name, {"renderer": gl["GL_RENDERER"], "rows": rows, "runs": runs, "preparation": prep,
-                              "cases": args.cases}))
+                              "cases": args.cases, "options": args.option}))
 
 
 if __name__ == "__main__":
