@@ -285,12 +285,14 @@ def sphere_search(
     progress: Progress | None = None,
     focal_band: tuple[float, float] | None = None,
     targets: list[Target] | None = None,
+    only: int | None = None,
 ) -> SphereSearch:
     """The pose on the working photo ``work`` from the hints (the module docstring).
 
     ``init`` is a start camera and ``box`` the client's box, both for the working photo.
     ``targets`` are those of an earlier search of the same photo and hints (found again
-    without).
+    without); ``only`` is the index of the one target searched (each target's by default; every
+    target still prices its edges as clutter).
     ``focal_band`` (image widths, low and high; a lens known from the photo's EXIF) holds the
     focal length: each placed template is taken to the band's geometric middle by a dolly
     zoom (its size at the pivot kept) before it is ranked, and refined there (the edges do not
@@ -318,33 +320,34 @@ def sphere_search(
     if progress is not None:
         progress("view sphere: placing templates", 0, float("nan"))
     allowed = _allowed(templates, init, search.sphere_spread)
-    placed = match(templates, first.chamfer.edges.distance, first.chamfer.tau, small, allowed=allowed,
-                   scales=search.sphere_scales, min_iou=search.sphere_iou, stride=search.sphere_stride,
+    sought = list(range(len(small))) if only is None else [only]
+    placed = match(templates, first.chamfer.edges.distance, first.chamfer.tau, [small[k] for k in sought],
+                   allowed=allowed, scales=search.sphere_scales, min_iou=search.sphere_iou, stride=search.sphere_stride,
                    between=None if progress is None else lambda: progress("view sphere: placing templates", 0,
                                                                           float("nan")))
     principal = (0.5 * (w - 1), 0.5 * (h - 1)) if init is None else tuple(init.scaled(w, h).K[:2, 2])
     pivot = options.probes.dolly_pivot * model.mesh.sphere[1]
     lens = None if focal_band is None else float(np.sqrt(focal_band[0] * focal_band[1]))
     ranked: list[Pose] = []
-    for k in range(len(small)):
-        order = np.argsort(placed.cost[:, k])
+    for j, k in enumerate(sought):
+        order = np.argsort(placed.cost[:, j])
         for i, t in enumerate(order[: search.sphere_rank]):
-            if not np.isfinite(placed.cost[t, k]):
+            if not np.isfinite(placed.cost[t, j]):
                 break
             if progress is not None and i % 16 == 0:
                 progress(f"view sphere: ranking target {k + 1}/{len(small)}", len(ranked), float("nan"))
-            cam = templates.camera(int(t), placed.focal[t, k], placed.u[t, k], placed.v[t, k], principal, w, h)
+            cam = templates.camera(int(t), placed.focal[t, j], placed.u[t, j], placed.v[t, j], principal, w, h)
             full = cam.scaled(Wf, Hf)
             if lens is not None:
                 full = ViewParams(full, model.mesh.sphere[0], pivot).dolly_zoom(lens * Wf / full.focal)
-            ranked.append(Pose(full, int(t), k, costs[k](full), detail={"placed": float(placed.cost[t, k])}))
+            ranked.append(Pose(full, int(t), k, costs[k](full), detail={"placed": float(placed.cost[t, j])}))
     if init is not None:
         ranked.append(Pose(init, -1, 0, first(init), detail={"start": 1.0}))
     if not ranked:
         raise PoseError("no view of the model can be placed in the photo")
     ranked.sort(key=lambda p: p.ranked)
     refined = []
-    for k in range(len(small)):
+    for k in sought:
         chosen: list[Pose] = []
         for p in ranked:
             if p.target == k and all(rotation_error(p.camera.R, c.camera.R) >= search.sphere_apart for c in chosen):
@@ -407,13 +410,13 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     ``shading_trust`` (the loss then explains the photo, and fits it more precisely than the
     edges), once the shading has judged it against its rival (:func:`_against_rival`, where
     ``rival_polish``). Else the edges decide: with ``sphere_votes``, the search runs again at
-    those sizes in turn until the poses of more than half of all the sizes agree (or none is
-    left), and the sizes vote (:func:`_vote`); a pose of another size is offered to the shading
-    in the same way. Returns the fit, the search and which stage's pose it is
-    (``shading`` or ``structure``). ``focal_band`` as for :func:`sphere_search`; the shading fit
-    searches the focal length within it (where the shading explains the photo, it tells the
-    focal length more precisely than a rounded EXIF). ``deadline`` is offered the search's pose
-    before the polish.
+    those sizes in turn, about the target of its pose, until the poses of more than half of all
+    the sizes agree (or none is left), and the sizes vote (:func:`_vote`); a pose of another
+    size is offered to the shading in the same way. Returns the fit, the search and which
+    stage's pose it is (``shading`` or ``structure``). ``focal_band`` as for
+    :func:`sphere_search`; the shading fit searches the focal length within it (where the
+    shading explains the photo, it tells the focal length more precisely than a rounded EXIF).
+    ``deadline`` is offered the search's pose before the polish.
     """
     templates = model.templates(renderer)
     searched = sphere_search(work, model, templates, options, renderer, optimizer, init=init, box=box,
@@ -429,7 +432,7 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         for size in votes:
             searches.append(sphere_search(work, model, templates, options.replace(sphere_size=int(size)), renderer,
                                           optimizer, init=init, box=box, progress=progress, focal_band=focal_band,
-                                          targets=searched.targets))
+                                          targets=searched.targets, only=searched.best.target))
             if max(len(g) for g in _groups(searches)) > (1 + len(votes)) / 2:
                 break  # a majority of all the sizes: the rest cannot outvote it
         voted = _vote(searches)
