@@ -354,10 +354,10 @@ class Search(_Group):
     sphere_iou: float = option(0.6, "least IoU of a placed template's projection (cut to the frame) with its "
                                "target box", low=0.0, high=1.0)
     sphere_size: int = option(240, "longer side of the photo for the view-sphere search (pixels)", low=32)
-    sphere_votes: tuple[int, ...] = option((), "other sizes (pixels) at which the view-sphere search runs again "
-                                           "where the shading does not explain its pose: the sizes vote on the "
-                                           "pose, and a pose they do not all agree on fails "
-                                           "(docs/decisions/0036-sizes-vote.md)", low=32)
+    sphere_votes: tuple[int, ...] = option((200, 320), "other sizes (pixels) at which the view-sphere search "
+                                           "runs again, in turn, about its pose's target where the shading does "
+                                           "not explain its pose: the sizes vote on the pose, and one they do not "
+                                           "all agree on fails (docs/decisions/0036-sizes-vote.md)", low=32)
     sphere_stride: int = option(1, "positions of the templates tried first every this many steps (4 % of the "
                                 "template's size), then about the best one step either way", low=1, high=8)
     sphere_rank: int = option(64, "placed templates of each target ranked on the two-way chamfer", low=1,
