@@ -411,12 +411,13 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     edges), once the shading has judged it against its rival (:func:`_against_rival`, where
     ``rival_polish``). Else the edges decide: with ``sphere_votes``, the search runs again at
     those sizes in turn, about the target of its pose, until the poses of more than half of all
-    the sizes agree (or none is left), and the sizes vote (:func:`_vote`); a pose of another
-    size is offered to the shading in the same way. Returns the fit, the search and which
-    stage's pose it is (``shading`` or ``structure``). ``focal_band`` as for
-    :func:`sphere_search`; the shading fit searches the focal length within it (where the
-    shading explains the photo, it tells the focal length more precisely than a rounded EXIF).
-    ``deadline`` is offered the search's pose before the polish.
+    the sizes agree (or none is left), and the sizes vote (:func:`_vote`); the other sizes'
+    poses are offered to the shading in the same way (the vote's first), and the first it
+    explains stands. Returns the fit, the search and which stage's pose it is (``shading`` or
+    ``structure``). ``focal_band`` as for :func:`sphere_search`; the shading fit searches the
+    focal length within it (where the shading explains the photo, it tells the focal length
+    more precisely than a rounded EXIF). ``deadline`` is offered the search's pose before the
+    polish.
     """
     templates = model.templates(renderer)
     searched = sphere_search(work, model, templates, options, renderer, optimizer, init=init, box=box,
@@ -436,12 +437,17 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
             if max(len(g) for g in _groups(searches)) > (1 + len(votes)) / 2:
                 break  # a majority of all the sizes: the rest cannot outvote it
         voted = _vote(searches)
-        if voted.best is not searched.best:
-            polished = _shading(work, model, voted, options, renderer, optimizer, box, foreground, progress,
+        # The shading is offered every size's poses it has not seen, the vote's first: a pose it
+        # explains stands, as the first size's would have.
+        offered = [voted] if voted.best is not searched.best else []
+        offered += [s for s in searches[1:] if s.best is not voted.best]
+        for other in offered:
+            polished = _shading(work, model, other, options, renderer, optimizer, box, foreground, progress,
                                 focal_band)
             if polished is not None:
                 fitted, confirmed, stage = polished
-                confirmed.checks["sizes_agree"] = voted.checks["sizes_agree"]
+                confirmed = replace(confirmed, seconds=sum(s.seconds for s in searches))
+                confirmed.checks["sizes_agree"] = _agreement(confirmed.best, searches)
                 return fitted, confirmed, stage
         searched = voted
     return sphere_fit(work, model, searched, options, renderer, box), searched, "structure"
@@ -490,6 +496,11 @@ def _groups(searches: list[SphereSearch]) -> list[list[int]]:
     return [[j for j, q in enumerate(bests) if rotation_error(p.camera.R, q.camera.R) < RIVAL_APART] for p in bests]
 
 
+def _agreement(pose: Pose, searches: list[SphereSearch]) -> float:
+    """The share of the searches whose best pose is within :data:`RIVAL_APART` of ``pose``."""
+    return sum(rotation_error(pose.camera.R, s.best.camera.R) < RIVAL_APART for s in searches) / len(searches)
+
+
 def _vote(searches: list[SphereSearch]) -> SphereSearch:
     """The sizes' vote on the pose (the first search is at the working ``sphere_size``).
 
@@ -511,7 +522,7 @@ def _vote(searches: list[SphereSearch]) -> SphereSearch:
         members = {j for g in groups if len(g) == largest for j in g}
         i = min(sorted(members), key=lambda j: first.costs[bests[j].target](bests[j].camera))
     voted = replace(searches[i], checks=dict(searches[i].checks), seconds=sum(s.seconds for s in searches))
-    voted.checks["sizes_agree"] = len(groups[i]) / len(searches)
+    voted.checks["sizes_agree"] = _agreement(bests[i], searches)
     return voted
 
 
