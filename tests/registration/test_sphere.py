@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -226,3 +227,28 @@ def test_where_the_edges_decide_every_search_size_finds_the_same_pose(sedan, ren
     assert clock.calls["matching"] == 2
     assert result.pose_stage == "structure" and result.checks["sizes_agree"] == 1.0 and not result.failed
     assert projection_error(sedan, result.camera, truth) < 4.0
+
+
+def test_where_the_edges_decide_the_shading_is_offered_every_size_s_pose(sedan, monkeypatch):
+    """The working size's pose is not one the shading explains; the 200 px search agrees with it
+    (320 px is not searched) and its pose is offered to the shading in turn, which explains it:
+    that pose stands, its time the two searches'."""
+    import vehicle_pose.registration.sphere as sphere
+
+    first = _searched(_framed(sedan, 40.0, 12.0, 0.8, 1.5), 0.3, {}, 1.0)
+    second = _searched(_framed(sedan, 44.0, 12.0, 0.8, 1.5), 0.3, {}, 2.0)
+    runs = iter([first, second])
+    monkeypatch.setattr(sphere, "sphere_search", lambda *args, **kwargs: next(runs))
+    offered = []
+
+    def shading(work, model, searched, *rest):
+        offered.append(searched)
+        return None if searched is first else ("polished", searched, "shading")
+
+    monkeypatch.setattr(sphere, "_shading", shading)
+    model = SimpleNamespace(templates=lambda renderer: None)
+    fitted, confirmed, stage = sphere.sphere_pose(np.zeros((H, W, 3), np.uint8), model, RegistrationOptions(),
+                                                  None, None)  # type: ignore[arg-type]
+    assert offered == [first, second] and fitted == "polished" and stage == "shading"
+    assert confirmed.best is second.best and confirmed.seconds == pytest.approx(3.0)
+    assert confirmed.checks["sizes_agree"] == 1.0
