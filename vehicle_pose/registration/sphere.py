@@ -522,7 +522,7 @@ def _vote(searches: list[SphereSearch]) -> SphereSearch:
         members = {j for g in groups if len(g) == largest for j in g}
         i = min(sorted(members), key=lambda j: first.costs[bests[j].target](bests[j].camera))
     voted = replace(searches[i], checks=dict(searches[i].checks), seconds=sum(s.seconds for s in searches))
-    voted.checks["sizes_agree"] = _agreement(bests[i], searches)
+    voted.checks["sizes_agree"] = len(groups[i]) / len(searches)
     return voted
 
 
