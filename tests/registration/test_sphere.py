@@ -14,8 +14,9 @@ from vehicle_pose.loss.edges import TwoWayChamfer
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.procedural import CarSpec, build_car
-from vehicle_pose.registration.sphere import REGION_BORDERS, Pose, SphereSearch, _regions, _vote
+from vehicle_pose.registration.sphere import REGION_BORDERS, Pose, SphereSearch, _regions, _vote, _with_twin, half_turn
 from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
+from vehicle_pose.search.optimize import make_optimizer
 from vehicle_pose.search.views import view_camera
 from vehicle_pose.segment.region import find_vehicle
 
@@ -252,3 +253,50 @@ def test_where_the_edges_decide_the_shading_is_offered_every_size_s_pose(sedan, 
     assert offered == [first, second] and fitted == "polished" and stage == "shading"
     assert confirmed.best is second.best and confirmed.seconds == pytest.approx(3.0)
     assert confirmed.checks["sizes_agree"] == 1.0
+
+
+def test_the_half_turn_twin_turns_the_model_about_its_up_axis_through_its_centre(sedan):
+    """The twin is half a turn from the pose, the model's centre and up axis stay where they
+    were in the image, its front goes where its back was, and the twin's twin is the pose."""
+    pose = _framed(sedan, 40.0, 12.0, 0.8, 1.5)
+    twin = half_turn(pose, sedan)
+    assert rotation_error(pose.R, twin.R) == pytest.approx(180.0, abs=1e-6)
+    centre = sedan.mesh.sphere[0]
+    assert np.allclose(twin.project(centre[None]), pose.project(centre[None]), atol=1e-9)
+    up, forward = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])  # the shipped models' +z and +x
+    assert np.allclose(twin.R @ up, pose.R @ up) and np.allclose(twin.R @ forward, -(pose.R @ forward))
+    again = half_turn(twin, sedan)
+    assert np.allclose(again.R, pose.R) and np.allclose(again.t, pose.t)
+
+
+class _Towards:
+    """A cost that falls towards one camera (its rotation and place), counting its calls."""
+
+    def __init__(self, truth: Camera) -> None:
+        self.truth, self.count = truth, 0
+
+    def __call__(self, camera: Camera) -> float:
+        self.count += 1
+        return rotation_error(camera.R, self.truth.R) / 90.0 + float(np.linalg.norm(camera.t - self.truth.t))
+
+
+def test_the_best_pose_s_twin_is_refined_and_stands_where_it_costs_less(sedan, renderer):
+    """A search ended on the half-turn twin of the pose its cost prefers (a few degrees off it):
+    the twin of its best pose, refined on the same cost, reaches that pose and comes first. Where
+    the cost prefers the best pose, the refined twin stays behind it."""
+    truth = _framed(sedan, 40.0, 12.0, 0.8, 1.5)
+    wrong = half_turn(_framed(sedan, 46.0, 15.0, 0.8, 1.5), sedan)
+    templates = sedan.templates(renderer)
+    template = int(np.argmin(np.abs(templates.views[:, 0] - 225.0) + np.abs(templates.views[:, 1] - 12.0)))
+    cost = _Towards(truth)
+    best = Pose(wrong, template, 0, cost(wrong), cost(wrong))
+    options = RegistrationOptions()
+    out = _with_twin([best], templates, [cost], sedan, options, make_optimizer(options.optimizer), None, None)  # type: ignore[list-item]
+    assert out[0].detail == {"twin": 1.0} and out[1] is best
+    assert rotation_error(out[0].camera.R, truth.R) < 2.0 and out[0].cost < 0.05
+    assert abs(templates.views[out[0].template, 0] - 45.0) <= 5.0  # the listing's view is the twin's
+    assert out[0].evaluations == cost.count - 3 > 0
+    kept = _Towards(wrong)
+    stays = _with_twin([Pose(wrong, template, 0, kept(wrong), kept(wrong))], templates, [kept], sedan, options,  # type: ignore[list-item]
+                       make_optimizer(options.optimizer), None, None)
+    assert stays[0].camera is wrong and stays[1].detail == {"twin": 1.0} and stays[1].cost > 0.0

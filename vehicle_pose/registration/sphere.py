@@ -13,7 +13,8 @@
    the one-way chamfer alone prefers the half-turn twin of most real photos.
 4. **Refinement**: the best ``sphere_refine`` ranked poses at least ``sphere_apart`` degrees
    apart, each refined on the same cost in all seven view coordinates (with the client's box,
-   plus the cost of leaving it).
+   plus the cost of leaving it). Without a start camera, the best refined pose's half-turn
+   twin is refined too (:func:`_with_twin`).
 5. **Choice**: the refined pose of lowest cost; its margin over the best pose at least
    :data:`RIVAL_APART` degrees away and its lead over the typical placed template say how
    credible it is. Where the shading explains the photo, the shading fit polishes the pose it
@@ -38,6 +39,7 @@ from vehicle_pose.geometry.parametrize import ViewParams
 from vehicle_pose.loss.edges import PhotoEdges, TwoWayChamfer, photo_edges
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel
+from vehicle_pose.model.metadata import parse_axis
 from vehicle_pose.photo import resized
 from vehicle_pose.registration.deadline import Deadline
 from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit, loss_share
@@ -51,7 +53,8 @@ from vehicle_pose.search.templates import ViewTemplates, match, turn_to
 from vehicle_pose.search.views import Box, box_overflow
 from vehicle_pose.segment.region import VehicleRegion, find_vehicle
 
-__all__ = ["Pose", "SphereSearch", "sphere_search", "sphere_fit", "sphere_pose", "edge_evidence", "RIVAL_APART"]
+__all__ = ["Pose", "SphereSearch", "sphere_search", "half_turn", "sphere_fit", "sphere_pose", "edge_evidence",
+           "RIVAL_APART"]
 
 RIVAL_APART = 15.0
 """Degrees apart at which two refined poses are two poses rather than one found twice."""
@@ -98,7 +101,8 @@ class SphereSearch:
         out = []
         for p in self.refined:
             az, el, d = self.templates.views[p.template] if p.template >= 0 else (np.nan, np.nan, np.nan)
-            out.append({"source": "view-sphere" if p.template >= 0 else "start", "azimuth": float(az),
+            source = "start" if p.template < 0 else "half-turn twin" if p.detail.get("twin") else "view-sphere"
+            out.append({"source": source, "azimuth": float(az),
                         "elevation": float(el), "distance": float(d),
                         "target": list(self.targets[p.target].box), "ranked": p.ranked, "cost": p.cost,
                         "evaluations": p.evaluations})
@@ -272,6 +276,41 @@ def _refine(chosen: list[Pose], costs: list[_Cost], model: VehicleModel, options
     return sorted(done, key=lambda p: p.cost)
 
 
+def half_turn(camera: Camera, model: VehicleModel) -> Camera:
+    """The camera that sees the model turned half a turn about its up axis through its centre:
+    the pose's front-back twin, whose outline is nearly the pose's own."""
+    up = parse_axis(model.info.up)
+    centre = model.mesh.sphere[0]
+    turn = 2.0 * np.outer(up, up) - np.eye(3)
+    R = camera.R @ turn
+    return Camera(camera.K, R, camera.t + camera.R @ centre - R @ centre, camera.width, camera.height)
+
+
+def _with_twin(refined: list[Pose], templates: ViewTemplates, costs: list[_Cost], model: VehicleModel,
+               options: RegistrationOptions, optimizer: Optimizer, progress: Progress | None,
+               focal_band: tuple[float, float] | None) -> list[Pose]:
+    """The refined poses with the best one's half-turn twin refined as they were (its place, size
+    and focal length, then all seven coordinates) on the best one's target; best first.
+
+    A car's outline half a turn away is nearly its own, and the template matching places the
+    twin's view where the pose's edges are, not where the twin's are: on real photos whose right
+    pose the matching left unrefined, the twin of the wrong pose refines to it, at a lower cost
+    (``docs/decisions/0037-half-turn-twin.md``)."""
+    best = refined[0]
+    camera = half_turn(best.camera, model)
+    az, el, d = templates.views[best.template] if best.template >= 0 else (0.0, 0.0, 0.0)
+    turned = np.mod(templates.views[:, 0] - az, 360.0) - 180.0  # 0 half a turn from the best's azimuth
+    template = int(np.argmin(np.abs(turned) + np.abs(templates.views[:, 1] - el) + np.abs(templates.views[:, 2] - d)))
+    cost = costs[best.target](camera)
+    twin = Pose(camera, template if best.template >= 0 else -1, best.target, cost, cost, detail={"twin": 1.0})
+    if progress is not None:
+        progress("view sphere: refining the half-turn twin", sum(c.count for c in costs), best.cost)
+    search = options.search
+    twin = _fit(twin, costs, model, options, optimizer, _HOLD, search.sphere_hold, focal_band)
+    twin = _fit(twin, costs, model, options, optimizer, _ALL, search.sphere_evaluations, focal_band)
+    return sorted([*refined, twin], key=lambda p: p.cost)
+
+
 def sphere_search(
     work: npt.NDArray[np.uint8],
     model: VehicleModel,
@@ -360,6 +399,9 @@ def sphere_search(
             refined += _refine(chosen, costs, model, options, optimizer, progress,
                                None if lens is None else (lens, lens))
     refined.sort(key=lambda p: p.cost)
+    if init is None and search.sphere_twin:
+        refined = _with_twin(refined, templates, costs, model, options, optimizer, progress,
+                             None if lens is None else (lens, lens))
     best = refined[0]
     rivals = [p.cost for p in refined[1:] if rotation_error(p.camera.R, best.camera.R) >= RIVAL_APART]
     rivals += [p.ranked for p in ranked if rotation_error(p.camera.R, best.camera.R) >= RIVAL_APART][:1]
