@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -247,9 +248,19 @@ def test_where_the_edges_decide_the_shading_is_offered_every_size_s_pose(sedan, 
         return None if searched is first else ("polished", searched, "shading")
 
     monkeypatch.setattr(sphere, "_shading", shading)
+    weighed = []
+
+    def with_twin(found, *rest):  # each size's search weighed against its twin, a copy of it
+        weighed.append(found)
+        return replace(found, refined=list(found.refined))
+
+    monkeypatch.setattr(sphere, "_with_twin", with_twin)
     model = SimpleNamespace(templates=lambda renderer: None)
     fitted, confirmed, stage = sphere.sphere_pose(np.zeros((H, W, 3), np.uint8), model, RegistrationOptions(),
                                                   None, None)  # type: ignore[arg-type]
+    # The edges weigh every size's pose against its twin; the shading is offered the searches as
+    # they were found.
+    assert weighed == [first, second]
     assert offered == [first, second] and fitted == "polished" and stage == "shading"
     assert confirmed.best is second.best and confirmed.seconds == pytest.approx(3.0)
     assert confirmed.checks["sizes_agree"] == 1.0
@@ -282,21 +293,30 @@ class _Towards:
 
 def test_the_best_pose_s_twin_is_refined_and_stands_where_it_costs_less(sedan, renderer):
     """A search ended on the half-turn twin of the pose its cost prefers (a few degrees off it):
-    the twin of its best pose, refined on the same cost, reaches that pose and comes first. Where
-    the cost prefers the best pose, the refined twin stays behind it."""
+    the twin of its best pose, refined on the same cost, reaches that pose and comes first, and
+    the margin is taken again. Where the cost prefers the best pose, the refined twin stays
+    behind it and is its rival."""
     truth = _framed(sedan, 40.0, 12.0, 0.8, 1.5)
     wrong = half_turn(_framed(sedan, 46.0, 15.0, 0.8, 1.5), sedan)
     templates = sedan.templates(renderer)
     template = int(np.argmin(np.abs(templates.views[:, 0] - 225.0) + np.abs(templates.views[:, 1] - 12.0)))
-    cost = _Towards(truth)
-    best = Pose(wrong, template, 0, cost(wrong), cost(wrong))
     options = RegistrationOptions()
-    out = _with_twin([best], templates, [cost], sedan, options, make_optimizer(options.optimizer), None, None)  # type: ignore[list-item]
-    assert out[0].detail == {"twin": 1.0} and out[1] is best
-    assert rotation_error(out[0].camera.R, truth.R) < 2.0 and out[0].cost < 0.05
-    assert abs(templates.views[out[0].template, 0] - 45.0) <= 5.0  # the listing's view is the twin's
-    assert out[0].evaluations == cost.count - 3 > 0
+
+    def searched(cost: _Towards) -> SphereSearch:
+        best = Pose(wrong, template, 0, cost(wrong), cost(wrong))
+        return SphereSearch([best], [best], [], 1.0, {"margin": 1.0}, templates, [cost])
+
+    cost = _Towards(truth)
+    found = searched(cost)
+    out = _with_twin(found, sedan, options, make_optimizer(options.optimizer), None, None)
+    twin = out.best
+    assert twin.detail == {"twin": 1.0} and out.refined[1] is found.best and found.refined == [found.best]
+    assert rotation_error(twin.camera.R, truth.R) < 2.0 and twin.cost < 0.05
+    assert abs(templates.views[twin.template, 0] - 45.0) <= 5.0  # the listing's view is the twin's
+    assert twin.evaluations == cost.count - 3 > 0 and out.seconds > 1.0
+    assert out.checks["sphere_cost"] == twin.cost
+    assert out.checks["margin"] == pytest.approx((found.best.cost - twin.cost) / found.best.cost)
     kept = _Towards(wrong)
-    stays = _with_twin([Pose(wrong, template, 0, kept(wrong), kept(wrong))], templates, [kept], sedan, options,  # type: ignore[list-item]
-                       make_optimizer(options.optimizer), None, None)
-    assert stays[0].camera is wrong and stays[1].detail == {"twin": 1.0} and stays[1].cost > 0.0
+    stays = _with_twin(searched(kept), sedan, options, make_optimizer(options.optimizer), None, None)
+    assert stays.best.camera is wrong and stays.refined[1].detail == {"twin": 1.0}
+    assert stays.checks["margin"] == pytest.approx(1.0 - stays.best.cost / stays.refined[1].cost)

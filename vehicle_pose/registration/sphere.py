@@ -13,18 +13,18 @@
    the one-way chamfer alone prefers the half-turn twin of most real photos.
 4. **Refinement**: the best ``sphere_refine`` ranked poses at least ``sphere_apart`` degrees
    apart, each refined on the same cost in all seven view coordinates (with the client's box,
-   plus the cost of leaving it). Without a start camera, the best refined pose's half-turn
-   twin is refined too (:func:`_with_twin`).
+   plus the cost of leaving it).
 5. **Choice**: the refined pose of lowest cost; its margin over the best pose at least
    :data:`RIVAL_APART` degrees away and its lead over the typical placed template say how
    credible it is. Where the shading explains the photo, the shading fit polishes the pose it
-   explains best and judges it against its best rival (:func:`sphere_pose`).
+   explains best and judges it against its best rival; else the edges decide, the best pose
+   weighed against its half-turn twin refined, and the search's sizes vote (:func:`sphere_pose`).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -221,7 +221,8 @@ def _allowed(templates: ViewTemplates, init: Camera | None, spread: float) -> np
     return np.asarray(angles <= spread, np.bool_)
 
 
-def _fit(pose: Pose, costs: list[_Cost], model: VehicleModel, options: RegistrationOptions, optimizer: Optimizer,
+def _fit(pose: Pose, costs: Sequence[Callable[[Camera], float]], model: VehicleModel, options: RegistrationOptions,
+         optimizer: Optimizer,
          free: tuple[int, ...], budget: int, focal_band: tuple[float, float] | None) -> Pose:
     """The pose refined in the view coordinates ``free`` (of seven) for ``budget`` evaluations,
     its focal length within ``focal_band`` (image widths) where one is given."""
@@ -286,29 +287,37 @@ def half_turn(camera: Camera, model: VehicleModel) -> Camera:
     return Camera(camera.K, R, camera.t + camera.R @ centre - R @ centre, camera.width, camera.height)
 
 
-def _with_twin(refined: list[Pose], templates: ViewTemplates, costs: list[_Cost], model: VehicleModel,
-               options: RegistrationOptions, optimizer: Optimizer, progress: Progress | None,
-               focal_band: tuple[float, float] | None) -> list[Pose]:
-    """The refined poses with the best one's half-turn twin refined as they were (its place, size
-    and focal length, then all seven coordinates) on the best one's target; best first.
+def _with_twin(searched: SphereSearch, model: VehicleModel, options: RegistrationOptions, optimizer: Optimizer,
+               progress: Progress | None, focal_band: tuple[float, float] | None) -> SphereSearch:
+    """The search with its best pose's half-turn twin refined as its poses were (place, size and
+    focal length, then all seven coordinates) on the best pose's target, among its refined poses
+    (kept first where it costs less), and its checks and time taken again.
 
-    A car's outline half a turn away is nearly its own, and the template matching places the
-    twin's view where the pose's edges are, not where the twin's are: on real photos whose right
-    pose the matching left unrefined, the twin of the wrong pose refines to it, at a lower cost
+    A car's outline half a turn away is nearly its own: the template matching places the twin's
+    view where the pose's edges are, and its placements rank below the pose's neighbours, so
+    the search may leave it unrefined. On real photos whose search ends on the twin of the right
+    pose, the twin refines to the right pose at a lower cost
     (``docs/decisions/0037-half-turn-twin.md``)."""
-    best = refined[0]
+    t0 = time.perf_counter()
+    templates, best = searched.templates, searched.best
     camera = half_turn(best.camera, model)
-    az, el, d = templates.views[best.template] if best.template >= 0 else (0.0, 0.0, 0.0)
-    turned = np.mod(templates.views[:, 0] - az, 360.0) - 180.0  # 0 half a turn from the best's azimuth
-    template = int(np.argmin(np.abs(turned) + np.abs(templates.views[:, 1] - el) + np.abs(templates.views[:, 2] - d)))
-    cost = costs[best.target](camera)
-    twin = Pose(camera, template if best.template >= 0 else -1, best.target, cost, cost, detail={"twin": 1.0})
+    template = -1
+    if best.template >= 0:
+        az, el, d = templates.views[best.template]
+        turned = np.mod(templates.views[:, 0] - az, 360.0) - 180.0  # 0 half a turn from the pose's azimuth
+        template = int(np.argmin(np.abs(turned) + np.abs(templates.views[:, 1] - el)
+                                 + np.abs(templates.views[:, 2] - d)))
+    cost = searched.costs[best.target](camera)
+    twin = Pose(camera, template, best.target, cost, cost, detail={"twin": 1.0})
     if progress is not None:
-        progress("view sphere: refining the half-turn twin", sum(c.count for c in costs), best.cost)
+        progress("view sphere: refining the half-turn twin", 0, best.cost)
     search = options.search
-    twin = _fit(twin, costs, model, options, optimizer, _HOLD, search.sphere_hold, focal_band)
-    twin = _fit(twin, costs, model, options, optimizer, _ALL, search.sphere_evaluations, focal_band)
-    return sorted([*refined, twin], key=lambda p: p.cost)
+    band = None if focal_band is None else (float(np.sqrt(focal_band[0] * focal_band[1])),) * 2
+    twin = _fit(twin, searched.costs, model, options, optimizer, _HOLD, search.sphere_hold, band)
+    twin = _fit(twin, searched.costs, model, options, optimizer, _ALL, search.sphere_evaluations, band)
+    refined = sorted([*searched.refined, twin], key=lambda p: p.cost)
+    checks = searched.checks | _checks(refined, searched.ranked)
+    return replace(searched, refined=refined, checks=checks, seconds=searched.seconds + time.perf_counter() - t0)
 
 
 def sphere_search(
@@ -399,19 +408,23 @@ def sphere_search(
             refined += _refine(chosen, costs, model, options, optimizer, progress,
                                None if lens is None else (lens, lens))
     refined.sort(key=lambda p: p.cost)
-    if init is None and search.sphere_twin:
-        refined = _with_twin(refined, templates, costs, model, options, optimizer, progress,
-                             None if lens is None else (lens, lens))
+    return SphereSearch(refined, ranked, targets, time.perf_counter() - t0, _checks(refined, ranked), templates,
+                        list(costs))
+
+
+def _checks(refined: list[Pose], ranked: list[Pose]) -> dict[str, float]:
+    """The best refined pose's cost, its relative margin over the best pose at least
+    :data:`RIVAL_APART` degrees away (refined, or else the first such ranked) and its lead over
+    the typical ranked placement."""
     best = refined[0]
     rivals = [p.cost for p in refined[1:] if rotation_error(p.camera.R, best.camera.R) >= RIVAL_APART]
     rivals += [p.ranked for p in ranked if rotation_error(p.camera.R, best.camera.R) >= RIVAL_APART][:1]
     typical = float(np.median([p.ranked for p in ranked]))
-    checks = {
+    return {
         "sphere_cost": best.cost,
         "margin": (min(rivals) - best.cost) / max(min(rivals), 1e-9) if rivals else 1.0,
         "rank_lead": 1.0 - best.cost / max(typical, 1e-9),
     }
-    return SphereSearch(refined, ranked, targets, time.perf_counter() - t0, checks, templates, list(costs))
 
 
 def sphere_fit(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereSearch, options: RegistrationOptions,
@@ -451,7 +464,9 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     coarse-to-fine shading fit runs from it and its pose is kept when its loss is at most
     ``shading_trust`` (the loss then explains the photo, and fits it more precisely than the
     edges), once the shading has judged it against its rival (:func:`_against_rival`, where
-    ``rival_polish``). Else the edges decide: with ``sphere_votes``, the search runs again at
+    ``rival_polish``). Else the edges decide: without a start camera and with ``sphere_twin``,
+    each search's best pose is weighed against its half-turn twin (:func:`_with_twin`); with
+    ``sphere_votes``, the search runs again at
     those sizes in turn, about the target of its pose, until the poses of more than half of all
     the sizes agree (or none is left), and the sizes vote (:func:`_vote`); the other sizes'
     poses are offered to the shading in the same way (the vote's first), and the first it
@@ -469,27 +484,39 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     polished = _shading(work, model, searched, options, renderer, optimizer, box, foreground, progress, focal_band)
     if polished is not None:
         return polished
+    # The edges decide: each size's search weighs its best pose against that pose's half-turn
+    # twin (without a start camera); the shading is offered each search as it was found.
+    twinned = options.search.sphere_twin and init is None
+
+    def decided(found: SphereSearch) -> SphereSearch:
+        return _with_twin(found, model, options, optimizer, progress, focal_band) if twinned else found
+
     votes = options.search.sphere_votes
-    if votes:
-        searches = [searched]
+    if not votes:
+        searched = decided(searched)
+    else:
+        searches, edges = [searched], [decided(searched)]
         for size in votes:
-            searches.append(sphere_search(work, model, templates, options.replace(sphere_size=int(size)), renderer,
-                                          optimizer, init=init, box=box, progress=progress, focal_band=focal_band,
-                                          targets=searched.targets, only=searched.best.target))
-            if max(len(g) for g in _groups(searches)) > (1 + len(votes)) / 2:
+            found = sphere_search(work, model, templates, options.replace(sphere_size=int(size)), renderer, optimizer,
+                                  init=init, box=box, progress=progress, focal_band=focal_band,
+                                  targets=searched.targets, only=edges[0].best.target)
+            searches.append(found)
+            edges.append(decided(found))
+            if max(len(g) for g in _groups(edges)) > (1 + len(votes)) / 2:
                 break  # a majority of all the sizes: the rest cannot outvote it
-        voted = _vote(searches)
-        # The shading is offered every size's poses it has not seen, the vote's first: a pose it
-        # explains stands, as the first size's would have.
-        offered = [voted] if voted.best is not searched.best else []
-        offered += [s for s in searches[1:] if s.best is not voted.best]
+        voted = _vote(edges)
+        i = next(j for j, e in enumerate(edges) if e.best is voted.best)
+        # The shading is offered every size's search it has not seen, the vote's first: a pose
+        # it explains stands, as the first size's would have.
+        offered = [searches[i]] if i > 0 else []
+        offered += [s for j, s in enumerate(searches[1:], 1) if j != i]
         for other in offered:
             polished = _shading(work, model, other, options, renderer, optimizer, box, foreground, progress,
                                 focal_band)
             if polished is not None:
                 fitted, confirmed, stage = polished
-                confirmed = replace(confirmed, seconds=sum(s.seconds for s in searches))
-                confirmed.checks["sizes_agree"] = _agreement(confirmed.best, searches)
+                confirmed = replace(confirmed, seconds=sum(s.seconds for s in edges))
+                confirmed.checks["sizes_agree"] = _agreement(confirmed.best, edges)
                 return fitted, confirmed, stage
         searched = voted
     return sphere_fit(work, model, searched, options, renderer, box), searched, "structure"
