@@ -364,8 +364,8 @@ class Search(_Group):
                               high=2000)
     sphere_apart: float = option(20.0, "degrees apart of the ranked poses refined", low=0.0, high=180.0)
     sphere_refine: int = option(2, "ranked poses of each target refined", low=1, high=16)
-    sphere_twin: bool = option(True, "without a start camera: the best refined pose's half-turn twin refined too, "
-                               "and kept where it costs less")
+    sphere_twin: bool = option(True, "without a start camera, where the edges decide: each search's best pose "
+                               "weighed against its half-turn twin, refined as its poses were (decision 0037)")
     sphere_hold: int = option(100, "evaluations of each refinement's first stage, its rotation held", low=0)
     sphere_clutter: float = option(0.55, "cost of a photo edge outside a target's box but inside another "
                                    "target's, in the two-way chamfer of the targets", low=0.0, high=1.0)
