@@ -222,8 +222,7 @@ def _allowed(templates: ViewTemplates, init: Camera | None, spread: float) -> np
 
 
 def _fit(pose: Pose, costs: Sequence[Callable[[Camera], float]], model: VehicleModel, options: RegistrationOptions,
-         optimizer: Optimizer,
-         free: tuple[int, ...], budget: int, focal_band: tuple[float, float] | None) -> Pose:
+         optimizer: Optimizer, free: tuple[int, ...], budget: int, focal_band: tuple[float, float] | None) -> Pose:
     """The pose refined in the view coordinates ``free`` (of seven) for ``budget`` evaluations,
     its focal length within ``focal_band`` (image widths) where one is given."""
     params = ViewParams(pose.camera, model.mesh.sphere[0], options.probes.dolly_pivot * model.mesh.sphere[1],
