@@ -45,11 +45,12 @@ class RegistrationResult:
     holds the measures behind them (and, for every run, ``foreground_iou``, the final
     silhouette against the final GrabCut mask, and ``loss``, the final loss over its maximum;
     ``passes`` is 2 when a second search ran);
-    ``candidates`` lists the screened starts. ``evaluations`` and ``restarts`` count every
-    search run, screening included; ``levels`` are the winning pose's levels. ``pose_stage``
-    says which stage's pose is the result: ``shading`` (the loss's fit) or ``structure`` (edges
-    and box, kept where the loss does not explain the photo;
-    ``docs/decisions/0012-structure-first.md``). ``parts`` is the part map at the final pose
+    ``candidates`` lists the screened starts (for the view-sphere search, its refined poses,
+    each with its ``source``: ``view-sphere``, ``half-turn twin`` or ``start``). ``evaluations``
+    and ``restarts`` count every search run, screening included; ``levels`` are the winning
+    pose's levels. ``pose_stage`` says which stage's pose is the result: ``shading`` (the
+    loss's fit) or ``structure`` (edges and box, kept where the loss does not explain the
+    photo; ``docs/decisions/0012-structure-first.md``). ``parts`` is the part map at the final pose
     (:mod:`vehicle_pose.render.parts`): which part each pixel of the photo shows; the JSON
     lists the visible parts. ``focal`` says where the focal length came from (``source``:
     ``exif`` where the photo's EXIF held the search, else ``searched``), the one found
