@@ -24,7 +24,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -90,7 +90,7 @@ class SphereSearch:
     seconds: float
     checks: dict[str, float]
     templates: ViewTemplates
-    costs: list[Callable[[Camera], float]] = field(default_factory=list)
+    costs: list[_Cost] = field(default_factory=list)
 
     @property
     def best(self) -> Pose:
@@ -221,8 +221,8 @@ def _allowed(templates: ViewTemplates, init: Camera | None, spread: float) -> np
     return np.asarray(angles <= spread, np.bool_)
 
 
-def _fit(pose: Pose, costs: Sequence[Callable[[Camera], float]], model: VehicleModel, options: RegistrationOptions,
-         optimizer: Optimizer, free: tuple[int, ...], budget: int, focal_band: tuple[float, float] | None) -> Pose:
+def _fit(pose: Pose, costs: list[_Cost], model: VehicleModel, options: RegistrationOptions, optimizer: Optimizer,
+         free: tuple[int, ...], budget: int, focal_band: tuple[float, float] | None) -> Pose:
     """The pose refined in the view coordinates ``free`` (of seven) for ``budget`` evaluations,
     its focal length within ``focal_band`` (image widths) where one is given."""
     params = ViewParams(pose.camera, model.mesh.sphere[0], options.probes.dolly_pivot * model.mesh.sphere[1],
@@ -276,6 +276,15 @@ def _refine(chosen: list[Pose], costs: list[_Cost], model: VehicleModel, options
     return sorted(done, key=lambda p: p.cost)
 
 
+def _held(focal_band: tuple[float, float] | None) -> tuple[float, float] | None:
+    """The focal lengths the search's placements and refinements keep within an EXIF's band:
+    its geometric middle alone (``docs/decisions/0021-exif-focal.md``); None without a band."""
+    if focal_band is None:
+        return None
+    lens = float(np.sqrt(focal_band[0] * focal_band[1]))
+    return lens, lens
+
+
 def half_turn(camera: Camera, model: VehicleModel) -> Camera:
     """The camera that sees the model turned half a turn about its up axis through its centre:
     the pose's front-back twin, whose outline is nearly the pose's own."""
@@ -308,12 +317,7 @@ def _with_twin(searched: SphereSearch, model: VehicleModel, options: Registratio
                                  + np.abs(templates.views[:, 2] - d)))
     cost = searched.costs[best.target](camera)
     twin = Pose(camera, template, best.target, cost, cost, detail={"twin": 1.0})
-    if progress is not None:
-        progress("view sphere: refining the half-turn twin", 0, best.cost)
-    search = options.search
-    band = None if focal_band is None else (float(np.sqrt(focal_band[0] * focal_band[1])),) * 2
-    twin = _fit(twin, searched.costs, model, options, optimizer, _HOLD, search.sphere_hold, band)
-    twin = _fit(twin, searched.costs, model, options, optimizer, _ALL, search.sphere_evaluations, band)
+    twin = _refine([twin], searched.costs, model, options, optimizer, progress, _held(focal_band))[0]
     refined = sorted([*searched.refined, twin], key=lambda p: p.cost)
     checks = searched.checks | _checks(refined, searched.ranked)
     return replace(searched, refined=refined, checks=checks, seconds=searched.seconds + time.perf_counter() - t0)
@@ -374,7 +378,8 @@ def sphere_search(
                                                                           float("nan")))
     principal = (0.5 * (w - 1), 0.5 * (h - 1)) if init is None else tuple(init.scaled(w, h).K[:2, 2])
     pivot = options.probes.dolly_pivot * model.mesh.sphere[1]
-    lens = None if focal_band is None else float(np.sqrt(focal_band[0] * focal_band[1]))
+    held = _held(focal_band)
+    lens = None if held is None else held[0]
     ranked: list[Pose] = []
     for j, k in enumerate(sought):
         order = np.argsort(placed.cost[:, j])
@@ -404,8 +409,7 @@ def sphere_search(
         for p in chosen:
             p.cost = p.ranked
         if chosen:
-            refined += _refine(chosen, costs, model, options, optimizer, progress,
-                               None if lens is None else (lens, lens))
+            refined += _refine(chosen, costs, model, options, optimizer, progress, held)
     refined.sort(key=lambda p: p.cost)
     return SphereSearch(refined, ranked, targets, time.perf_counter() - t0, _checks(refined, ranked), templates,
                         list(costs))
