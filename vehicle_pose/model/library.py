@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from vehicle_pose.errors import ModelError, UnknownModelError
-from vehicle_pose.model.metadata import UNITS, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
+from vehicle_pose.model.metadata import UNITS, WHEEL_ESTIMATE, ModelInfo, WheelGeometry, estimate_wheels, parse_axis
 
 if TYPE_CHECKING:
     from vehicle_pose.model.mesh import Mesh
@@ -156,9 +156,11 @@ def _complete(info: ModelInfo, mesh: Mesh, levels: Levels | None = None) -> Mode
         return info
 
     def estimate() -> dict[str, object]:
-        return estimate_wheels(mesh.vertices, parse_axis(info.up), parse_axis(info.forward)).to_dict()
+        return estimate_wheels(mesh.vertices, parse_axis(info.up), parse_axis(info.forward),
+                               [(p.vertices, p.faces) for p in mesh.parts]).to_dict()
 
-    found = levels.wheels(f"{info.up} {info.forward}", estimate) if levels is not None else estimate()
+    axes = f"{info.up} {info.forward} v{WHEEL_ESTIMATE}"
+    found = levels.wheels(axes, estimate) if levels is not None else estimate()
     wheels = WheelGeometry.from_dict(found)
     return replace(info, wheels=wheels, estimated=tuple(sorted({*info.estimated, "wheels"})))
 

@@ -9,6 +9,7 @@ listed in ``estimated``.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,11 +20,15 @@ import numpy.typing as npt
 from vehicle_pose.errors import ModelError
 from vehicle_pose.geometry.pose import Side, SideGeometry
 
-__all__ = ["UNITS", "WheelGeometry", "ModelInfo", "parse_axis", "estimate_wheels"]
+__all__ = ["UNITS", "WHEEL_ESTIMATE", "WheelGeometry", "ModelInfo", "parse_axis", "estimate_wheels", "wheel_components"]
 
 FloatArray = npt.NDArray[np.float64]
 _AXES = {"x": 0, "y": 1, "z": 2}
 
+
+WHEEL_ESTIMATE = 2
+"""Version of the wheel estimate; raise it whenever :func:`estimate_wheels` gives other wheels
+for a mesh (prepared models keep their estimate under it)."""
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 """Metres per unit of the length units a mesh may be given in."""
@@ -102,13 +107,18 @@ class WheelGeometry:
 _WHEEL_KEYS = ("rear_axle_center", "front_axle_center", "axle_direction", "track_width", "wheel_radius")
 
 
-def estimate_wheels(vertices: npt.ArrayLike, up: FloatArray, forward: FloatArray) -> WheelGeometry:
-    """Estimate the axle geometry of a car-like mesh from its vertices.
+def estimate_wheels(vertices: npt.ArrayLike, up: FloatArray, forward: FloatArray,
+                    parts: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]] = ()) -> WheelGeometry:
+    """Estimate the axle geometry of a car-like mesh.
 
-    The lower envelope of the side view (height of the lowest vertex along the vehicle's length)
-    touches the ground under each wheel; the contact points give the axle positions and the
-    curvature of the envelope around them the wheel radius. The lateral spread of the vertices
-    inside the wheel circles gives the track.
+    Where the mesh's ``parts`` (each ``(vertices, faces)``) model the tyres as pieces of their
+    own, as CAD models do, the wheels are those pieces (:func:`wheel_components`). Otherwise, from
+    the vertices alone: the lower envelope of the side view (height of the lowest vertex along
+    the vehicle's length) touches the ground under each wheel; the contact points give the axle
+    positions and the curvature of the envelope around them the wheel radius. The lateral
+    spread of the vertices inside the wheel circles gives the track. The envelope is only as
+    round as the tyre's polygon: a tyre of a few dozen faces reads as a smaller wheel (a CAD
+    car's 0.071 as 0.040), which is why the pieces come first.
 
     Parameters
     ----------
@@ -116,7 +126,13 @@ def estimate_wheels(vertices: npt.ArrayLike, up: FloatArray, forward: FloatArray
         Mesh vertices, mesh frame.
     up, forward : (3,)
         Unit vectors of the vehicle's up and forward directions in the mesh frame.
+    parts : sequence of ((V, 3), (F, 3)), optional
+        The mesh's parts as vertices and faces, for :func:`wheel_components`.
     """
+    if len(parts):
+        found = wheel_components(parts, up, forward)
+        if found is not None:
+            return found
     v = np.asarray(vertices, dtype=np.float64)
     up = np.asarray(up, np.float64)
     fwd = np.asarray(forward, np.float64)
@@ -178,6 +194,109 @@ def estimate_wheels(vertices: npt.ArrayLike, up: FloatArray, forward: FloatArray
         return p
 
     return WheelGeometry(point(rear_x), point(front_x), left, 2.0 * half_track, wheel_r)
+
+
+_TYRE_DIAMETER = (0.08, 0.24)
+"""A tyre's diameter as a share of the vehicle's length (cars, vans and pickups: 0.12-0.19)."""
+
+
+def _pieces(points: FloatArray, faces: npt.NDArray[np.int64], grid: float
+            ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+    """The mesh's corners welded by position (to ``grid``) and the connected piece of each: faces
+    that share a corner's position are one piece, so that a flat-shaded surface, whose faces
+    each repeat their corners, stays whole. Returns the welded corners' points (C, 3) and their
+    pieces (C,)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    cells = np.round((points - points.min(0)) / grid).astype(np.int64)
+    # One integer a position (21 bits an axis: the grid is a millionth of the vehicle's length).
+    key = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+    _, first, welded = np.unique(key, return_index=True, return_inverse=True)
+    corner = welded.reshape(-1)[faces]  # (F, 3) welded corner ids
+    n = len(first)
+    a = np.concatenate([corner[:, 0], corner[:, 1]])
+    b = np.concatenate([corner[:, 1], corner[:, 2]])
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    # Corners no low face uses form pieces of their own, which no test below keeps for long:
+    # a lone point has no size.
+    return points[first], label.astype(np.int64)
+
+
+def wheel_components(parts: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]], up: FloatArray,
+                     forward: FloatArray) -> WheelGeometry | None:
+    """The wheels of a mesh that models its tyres as pieces of their own, or None.
+
+    A tyre is a connected piece of the mesh (faces sharing corners, within one part) that is
+    round seen from the side (as long as it is high, within 20 %), stands on the ground (its
+    bottom within 3 % of the vehicle's length of the mesh's lowest point), is narrower than half
+    its diameter, lies off the vehicle's middle, and is 8-24 % of the vehicle's length across.
+    The largest such piece in each corner of the vehicle (front or rear, left or right) is its
+    wheel: a rim or a hub inside the tyre is smaller. With a wheel found at the front and at the
+    rear, the axle centres are the means of their wheels' centres (on the vehicle's middle line),
+    the radius their median half diameter and the track the mean distance between an axle's
+    left and right wheels (twice the found wheel's offset where only one side has one).
+    None where the front or the rear has no such piece (a body whose tyres are welded to it):
+    such meshes are left to the envelope of :func:`estimate_wheels`.
+    """
+    up = np.asarray(up, np.float64)
+    fwd = np.asarray(forward, np.float64)
+    left = np.cross(up, fwd)
+    frame = np.stack([fwd, left, up])
+    shapes = [(np.asarray(v, np.float64).reshape(-1, 3), np.asarray(f, np.int64).reshape(-1, 3)) for v, f in parts]
+    shapes = [(v, f) for v, f in shapes if len(f)]
+    if not shapes:
+        return None
+    every = np.concatenate([v for v, _ in shapes]) @ frame.T
+    lo, hi = every.min(0), every.max(0)
+    length = float(hi[0] - lo[0])
+    if length <= 0.0:
+        return None
+    mid = 0.5 * (lo + hi)
+    half_width = 0.5 * float(hi[1] - lo[1])
+    found: list[FloatArray] = []  # per piece: centre (3,), diameter
+    for v, f in shapes:
+        local = v @ frame.T
+        # Only faces low enough to belong to a wheel: a piece cut by this line is too tall to be one.
+        low = f[(local[f, 2] < lo[2] + 0.3 * length).all(axis=1)]
+        if not len(low):
+            continue
+        points, pieces = _pieces(local, low, 1e-6 * length)
+        order = np.argsort(pieces, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(pieces[order]) != 0])
+        pmin = np.minimum.reduceat(points[order], starts, axis=0)
+        pmax = np.maximum.reduceat(points[order], starts, axis=0)
+        size = pmax - pmin
+        across = np.maximum(size[:, 0], size[:, 2])  # a polygon's corners lie on the circle
+        centre = 0.5 * (pmin + pmax)
+        keep = ((size[:, 0] > 0.8 * size[:, 2]) & (size[:, 0] < 1.25 * size[:, 2])
+                & (across > _TYRE_DIAMETER[0] * length) & (across < _TYRE_DIAMETER[1] * length)
+                & (pmin[:, 2] < lo[2] + 0.03 * length) & (size[:, 1] < 0.5 * across)
+                & (np.abs(centre[:, 1] - mid[1]) > 0.3 * half_width))
+        found += [np.r_[c, d] for c, d in zip(centre[keep], across[keep], strict=True)]
+    corners_found: dict[tuple[bool, bool], FloatArray] = {}
+    for piece in found:
+        key = (bool(piece[0] > mid[0]), bool(piece[1] > mid[1]))
+        if key not in corners_found or piece[3] > corners_found[key][3]:
+            corners_found[key] = piece
+    axles = []
+    for front in (False, True):
+        wheels = [p for (fr, _), p in corners_found.items() if fr == front]
+        if not wheels:
+            return None
+        axles.append(wheels)
+    radius = 0.5 * float(np.median([p[3] for w in axles for p in w]))
+    offsets = [abs(float(p[1] - mid[1])) for w in axles for p in w]
+    tracks = [abs(float(w[0][1] - w[1][1])) for w in axles if len(w) == 2]
+    track = float(np.mean(tracks)) if tracks else 2.0 * float(np.mean(offsets))
+
+    def axle(wheels: list[FloatArray]) -> FloatArray:
+        x, z = float(np.mean([p[0] for p in wheels])), float(np.mean([p[2] for p in wheels]))
+        point: FloatArray = np.array([x, mid[1], z]) @ frame
+        return point
+
+    return WheelGeometry(axle(axles[0]), axle(axles[1]), left, track, radius)
 
 
 def _lower_hull(points: FloatArray) -> FloatArray:

@@ -441,7 +441,8 @@ class Levels:
         return self._once(self._arrays, (section, key), section, key, make, read, write)
 
     def wheels(self, axes: str, make: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-        """Estimated wheel metadata for the axes ``"up forward"``, kept with the entry."""
+        """Estimated wheel metadata for the axes and the estimate's version (``"up forward vN"``), kept
+        with the entry."""
         if self.entry is not None:
             try:
                 found = self.entry.manifest().get("wheels", {}).get(axes)
