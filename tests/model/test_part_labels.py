@@ -187,6 +187,20 @@ def test_glass_facing_up_is_a_side_window_beside_the_roof_and_the_roof_over_its_
     assert (roofed.labels[-int(roof.sum()):] == LEGEND["roof"]).all()
 
 
+def test_a_lamps_clear_cover_is_that_lamp_and_leaves_the_cabin_where_the_windows_are(sedan):
+    """The anonymous sedan's lamps made glass (a lamp's clear cover, as a CAD model's material
+    calls it): beyond the axles and below the windows, they are its head and tail lamps, and
+    the cabin, the hood and the trunk are where they were with lamps of their own material."""
+    anonymous = Mesh(tuple(replace(p, name=f"mesh{k}") for k, p in enumerate(sedan.mesh.parts)))
+    covered = Mesh(tuple(replace(p, kind="glass") if p.kind == "light" else p for p in anonymous.parts))
+    assert sum(p.kind == "light" for p in anonymous.parts) == 4
+    before = label_faces(anonymous, sedan.info.up, sedan.wheels).labels
+    after = label_faces(covered, sedan.info.up, sedan.wheels).labels
+    np.testing.assert_array_equal(after, before)
+    names = {VOCABULARY[k - 1] for k in after}
+    assert {"headlamp_left", "headlamp_right", "taillamp_left", "taillamp_right", "hood", "trunk"} <= names
+
+
 def test_a_door_named_without_a_side_is_placed_by_its_faces(sedan):
     """The sedan's body cut in two geometries both called ``Door`` (its left and right halves):
     each becomes a door of its own side by where its faces are, and is not estimated."""

@@ -45,7 +45,7 @@ __all__ = ["LABELLING", "VOCABULARY", "LEGEND", "COLOURS", "SYNONYMS", "PartLabe
            "geometric_labels", "name_part", "model_frame", "part_index", "read_part_file", "part_file_text",
            "ListedParts"]
 
-LABELLING = 3
+LABELLING = 4
 """Version of the labelling; raise it whenever the labels of a mesh change (prepared models
 keep their labels under it)."""
 
@@ -314,7 +314,9 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
     ``kinds`` (one per face, a key of :data:`SYNONYMS` or None) narrows faces whose names say
     what they are: glass is a window, a lamp a head or tail lamp, a wheel the wheel it is
     nearest. The faces of material kind glass, tyre, wheel and light are treated the same way
-    when their names say nothing more.
+    when their names say nothing more, but for glass whose part lies wholly ahead of the front
+    axle or behind the rear one and below the windows' lower edge: a lamp's clear cover, a
+    head or tail lamp.
     """
     frame = model_frame(up_axis, wheels)
     tris, nm, areas, owner = face_geometry(mesh)
@@ -324,13 +326,24 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
     unnamed = np.array([k is None for k in kinds], bool)
     glass = np.isin(kinds, ["windscreen", "rear_window", "side_window", "front_door_window", "rear_door_window",
                             "quarter_window"]) | ((material == "glass") & unnamed)
-    s = _shape(c, areas, glass, frame)
+    # Glass of a part that lies wholly beyond an axle (a lamp's clear cover at the car's end)
+    # does not say where the cabin is; below the windows' edge it is that lamp.
+    greenhouse, cover = glass.copy(), np.zeros_like(glass)
+    for k in np.unique(owner[glass & unnamed]):
+        mine = glass & unnamed & (owner == k)
+        if c[mine, 0].min() > frame.front_axle or c[mine, 0].max() < frame.rear_axle:
+            greenhouse[mine] = False
+            cover[mine] = True
+    s = _shape(c, areas, greenhouse, frame)
+    for k in np.unique(owner[cover]):
+        mine = cover & (owner == k)
+        cover[mine] = c[mine, 2].max() < s.belt
     n = _outward(c, n, s)
     side = _side(c[:, 1])
     out = _body_part(c, n, side, s, frame)
     g = _glass_part(c, n, side, s, frame)
     out[glass] = g[glass]
-    lamp = (material == "light") & unnamed
+    lamp = ((material == "light") & unnamed) | cover
     head = (kinds == "headlamp") | (lamp & (c[:, 0] >= 0))
     tail = (kinds == "taillamp") | (lamp & (c[:, 0] < 0))
     out[head] = [f"headlamp_{sd}" for sd in side[head]]
