@@ -37,8 +37,9 @@ def draw_overlay(
 ) -> npt.NDArray[np.uint8]:
     """The photo (H, W, 3) uint8 RGB with the model's outline drawn at ``camera``.
 
-    The silhouette is drawn in yellow, boundaries between material parts in cyan and the wheel
-    centres in red. ``shade`` in [0, 1] blends a head-light shaded render of the model in.
+    The silhouette is drawn in yellow, boundaries between material parts in cyan and the centres
+    of the wheels whose outer face looks at the camera in red (the far side's are behind the
+    body). ``shade`` in [0, 1] blends a head-light shaded render of the model in.
     With a part map (:mod:`vehicle_pose.render.parts`, for the same camera), each part is tinted
     in its colour (``tint``: how much) and a legend of the parts seen is drawn in a corner.
     """
@@ -68,12 +69,23 @@ def draw_overlay(
     contours, _ = cv2.findContours((labels > 0).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cv2.drawContours(out, contours, -1, _OUTLINE, t + 1, lineType=cv2.LINE_AA)
     if wheels is not None:
-        uv = cam.project(wheels.wheel_centres())
-        for x, y in uv[np.all(np.isfinite(uv), axis=1)]:
+        for x, y in _seen_hubs(wheels, cam):
             cv2.circle(out, (int(round(x)), int(round(y))), 2 * t + 2, _WHEELS, -1, lineType=cv2.LINE_AA)
     if parts is not None:
         _legend(out, parts)
     return out
+
+
+def _seen_hubs(wheels: WheelGeometry, camera: Camera) -> npt.NDArray[np.float64]:
+    """The pixels (N, 2) of the wheel centres of each side whose outward axle points towards the
+    camera (none behind it)."""
+    hubs = [np.stack([g.rear, g.front]) for g in (wheels.side("left"), wheels.side("right"))
+            if float((camera.R @ g.axle)[2]) < 0.0]
+    if not hubs:
+        return np.zeros((0, 2))
+    uv = camera.project(np.concatenate(hubs))
+    seen: npt.NDArray[np.float64] = uv[np.all(np.isfinite(uv), axis=1)]
+    return seen
 
 
 def _tint_parts(out: npt.NDArray[np.uint8], parts: PartMap, tint: float) -> None:
