@@ -209,8 +209,10 @@ def _pieces(points: FloatArray, faces: npt.NDArray[np.int64], grid: float
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    cells = np.round((points - points.min(0)) / grid).astype(np.int64)
-    # One integer a position (21 bits an axis: the grid is a millionth of the vehicle's length).
+    # One integer a position, 21 bits an axis: the grid coarse enough for the part's extent.
+    origin = points.min(0)
+    grid = max(grid, float(np.ptp(points, axis=0).max()) / float(1 << 20))
+    cells = np.round((points - origin) / grid).astype(np.int64)
     key = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
     _, first, welded = np.unique(key, return_index=True, return_inverse=True)
     corner = welded.reshape(-1)[faces]  # (F, 3) welded corner ids
