@@ -202,27 +202,32 @@ _TYRE_DIAMETER = (0.08, 0.24)
 
 def _pieces(points: FloatArray, faces: npt.NDArray[np.int64], grid: float
             ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
-    """The mesh's corners welded by position (to ``grid``) and the connected piece of each: faces
-    that share a corner's position are one piece, so that a flat-shaded surface, whose faces
-    each repeat their corners, stays whole. Returns the welded corners' points (C, 3) and their
-    pieces (C,)."""
+    """The corners ``faces`` use, welded by position (to ``grid``), and the connected piece of
+    each: faces that share a corner's position are one piece, so that a flat-shaded surface,
+    whose faces each repeat their corners, stays whole. Returns the welded corners' points
+    (C, 3) and their pieces (C,)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    # One integer a position, 21 bits an axis: the grid coarse enough for the part's extent.
+    # Only the corners the faces use, as one integer a position (21 bits an axis, the grid
+    # coarse enough for the part's extent).
+    used = np.zeros(len(points), bool)
+    used[faces.reshape(-1)] = True
+    index = np.flatnonzero(used)
+    points = points[index]
     origin = points.min(0)
     grid = max(grid, float(np.ptp(points, axis=0).max()) / float(1 << 20))
-    cells = np.round((points - origin) / grid).astype(np.int64)
+    cells = ((points - origin) * (1.0 / grid)).astype(np.int64)
     key = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
-    _, first, welded = np.unique(key, return_index=True, return_inverse=True)
-    corner = welded.reshape(-1)[faces]  # (F, 3) welded corner ids
+    _, first, welded_used = np.unique(key, return_index=True, return_inverse=True)
+    welded = np.zeros(len(used), np.int64)
+    welded[index] = welded_used.reshape(-1)
+    corner = welded[faces]  # (F, 3) welded corner ids
     n = len(first)
     a = np.concatenate([corner[:, 0], corner[:, 1]])
     b = np.concatenate([corner[:, 1], corner[:, 2]])
     graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(n, n))
     _, label = connected_components(graph, directed=False)
-    # Corners no low face uses form pieces of their own, which no test below keeps for long:
-    # a lone point has no size.
     return points[first], label.astype(np.int64)
 
 
@@ -250,18 +255,20 @@ def wheel_components(parts: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]], up: F
     shapes = [(v, f) for v, f in shapes if len(f)]
     if not shapes:
         return None
-    every = np.concatenate([v for v, _ in shapes]) @ frame.T
-    lo, hi = every.min(0), every.max(0)
+    locals_ = [v @ frame.T for v, _ in shapes]
+    lo = np.min([loc.min(0) for loc in locals_], axis=0)
+    hi = np.max([loc.max(0) for loc in locals_], axis=0)
     length = float(hi[0] - lo[0])
     if length <= 0.0:
         return None
     mid = 0.5 * (lo + hi)
     half_width = 0.5 * float(hi[1] - lo[1])
     found: list[FloatArray] = []  # per piece: centre (3,), diameter
-    for v, f in shapes:
-        local = v @ frame.T
-        # Only faces low enough to belong to a wheel: a piece cut by this line is too tall to be one.
-        low = f[(local[f, 2] < lo[2] + 0.3 * length).all(axis=1)]
+    for local, (_, f) in zip(locals_, shapes, strict=True):
+        # Only faces low enough and far enough from the middle line to belong to a wheel: a
+        # piece cut by these lines is too tall, or as long as the car, to be one.
+        near = (local[:, 2] < lo[2] + 0.3 * length) & (np.abs(local[:, 1] - mid[1]) > 0.2 * half_width)
+        low = f[near[f].all(axis=1)]
         if not len(low):
             continue
         points, pieces = _pieces(local, low, 1e-6 * length)

@@ -241,61 +241,61 @@ ARCH = 1.8
 quarters end, and the doors begin, this far in front of or behind the axles."""
 
 
-def _side(y: npt.NDArray[np.float64]) -> npt.NDArray[np.str_]:
-    return np.where(y >= 0.0, "left", "right")
+def _sided(part: str, left: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint8]:
+    """The label of ``part``'s left or right one (``part_left``, ``part_right``) for each face."""
+    out: npt.NDArray[np.uint8] = np.where(left, LEGEND[f"{part}_left"], LEGEND[f"{part}_right"]).astype(np.uint8)
+    return out
 
 
-def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], side: npt.NDArray[np.str_], s: _Shape,
-                frame: Frame) -> npt.NDArray[np.object_]:
+def _glass_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], left: npt.NDArray[np.bool_], s: _Shape,
+                frame: Frame) -> npt.NDArray[np.uint8]:
     """Windscreen, rear window or the side window over each door (quarter windows behind)."""
-    out = np.empty(len(c), object)
-    out[:] = [f"quarter_window_{sd}" for sd in side]
+    out = _sided("quarter_window", left)
     front_door = c[:, 0] >= frame.door_split
     rear_door = (c[:, 0] < frame.door_split) & (c[:, 0] >= frame.rear_axle + frame.arch)
-    out[front_door] = [f"front_door_window_{sd}" for sd in side[front_door]]
-    out[rear_door] = [f"rear_door_window_{sd}" for sd in side[rear_door]]
+    out[front_door] = _sided("front_door_window", left[front_door])
+    out[rear_door] = _sided("rear_door_window", left[rear_door])
     up = n[:, 2] > 0.9
     # Glass facing up over the middle half of the car's width is a glass roof; beside it, the
     # top of a side window curving in under the roof's edge.
     central = np.abs(c[:, 1]) < 0.5 * np.max(np.abs(c[:, 1]))
     facing = (np.abs(n[:, 1]) < 0.6) & (central | ~up)  # the glass faces forward, back or up
     mid = 0.5 * (s.cabin[0] + s.cabin[1])
-    out[facing & (c[:, 0] >= mid)] = "windscreen"
-    out[facing & (c[:, 0] < mid)] = "rear_window"
-    out[facing & up] = "roof"
+    out[facing & (c[:, 0] >= mid)] = LEGEND["windscreen"]
+    out[facing & (c[:, 0] < mid)] = LEGEND["rear_window"]
+    out[facing & up] = LEGEND["roof"]
     return out
 
 
-def _body_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], side: npt.NDArray[np.str_], s: _Shape,
-               frame: Frame) -> npt.NDArray[np.object_]:
+def _body_part(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], left: npt.NDArray[np.bool_], s: _Shape,
+               frame: Frame) -> npt.NDArray[np.uint8]:
     """The body panel of each face, from its place and the way it faces."""
     x, z = c[:, 0], c[:, 2]
-    out = np.empty(len(c), object)
     # the sides: fender over the front wheel, quarter over the rear one, doors between
-    out[:] = [f"front_door_{sd}" for sd in side]
+    out = _sided("front_door", left)
     rear_door = x < frame.door_split
-    out[rear_door] = [f"rear_door_{sd}" for sd in side[rear_door]]
+    out[rear_door] = _sided("rear_door", left[rear_door])
     fender = x >= frame.front_axle - frame.arch
-    out[fender] = [f"front_fender_{sd}" for sd in side[fender]]
+    out[fender] = _sided("front_fender", left[fender])
     quarter = x <= frame.rear_axle + frame.arch
-    out[quarter] = [f"rear_quarter_{sd}" for sd in side[quarter]]
+    out[quarter] = _sided("rear_quarter", left[quarter])
     # the surfaces facing up: hood before the cabin, trunk behind it, roof over it
     up = n[:, 2] > 0.55
-    out[up & (x > s.cabin[1])] = "hood"
-    out[up & (x < s.cabin[0])] = "trunk"
+    out[up & (x > s.cabin[1])] = LEGEND["hood"]
+    out[up & (x < s.cabin[0])] = LEGEND["trunk"]
     above = z > s.belt + 0.02 * s.top
     roof = above & (x >= s.cabin[0]) & (x <= s.cabin[1]) & (np.abs(n[:, 1]) < 0.6)
-    out[roof] = "roof"
+    out[roof] = LEGEND["roof"]
     # the ends beyond the wheel arches: below the wheels' tops the bumpers, above them the
     # faces that look forward or back belong to the hood or the trunk (or a tailgate, which
     # reaches above the belt: the back of a van or an estate)
     lid = 2.0 * frame.radius
     ahead, behind = x > frame.front_axle + frame.arch, x < frame.rear_axle - frame.arch
     end = np.abs(n[:, 0]) > 0.7
-    out[ahead & (z >= lid) & end & ~above] = "hood"
-    out[behind & (z >= lid) & end & (x < s.cabin[0])] = "trunk"
-    out[ahead & (z < lid)] = "front_bumper"
-    out[behind & (z < lid)] = "rear_bumper"
+    out[ahead & (z >= lid) & end & ~above] = LEGEND["hood"]
+    out[behind & (z >= lid) & end & (x < s.cabin[0])] = LEGEND["trunk"]
+    out[ahead & (z < lid)] = LEGEND["front_bumper"]
+    out[behind & (z < lid)] = LEGEND["rear_bumper"]
     return out
 
 
@@ -339,22 +339,23 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
         mine = cover & (owner == k)
         cover[mine] = c[mine, 2].max() < s.belt
     n = _outward(c, n, s)
-    side = _side(c[:, 1])
-    out = _body_part(c, n, side, s, frame)
-    g = _glass_part(c, n, side, s, frame)
+    left = c[:, 1] >= 0.0
+    out = _body_part(c, n, left, s, frame)
+    g = _glass_part(c, n, left, s, frame)
     out[glass] = g[glass]
     lamp = ((material == "light") & unnamed) | cover
     head = (kinds == "headlamp") | (lamp & (c[:, 0] >= 0))
     tail = (kinds == "taillamp") | (lamp & (c[:, 0] < 0))
-    out[head] = [f"headlamp_{sd}" for sd in side[head]]
-    out[tail] = [f"taillamp_{sd}" for sd in side[tail]]
+    out[head] = _sided("headlamp", left[head])
+    out[tail] = _sided("taillamp", left[tail])
     wheel = (kinds == "wheel") | (np.isin(material, ["tyre", "wheel"]) & unnamed)
-    axle = np.where(c[:, 0] >= 0, "front", "rear")
-    out[wheel] = [f"wheel_{a}_{sd}" for a, sd in zip(axle[wheel], side[wheel], strict=True)]
+    front = c[:, 0] >= 0
+    out[wheel & front] = _sided("wheel_front", left[wheel & front])
+    out[wheel & ~front] = _sided("wheel_rear", left[wheel & ~front])
     mirror = kinds == "mirror"
-    out[mirror] = [f"mirror_{sd}" for sd in side[mirror]]
-    out[(kinds == "other") | ((material == "other") & unnamed)] = "other"
-    return np.array([LEGEND[p] for p in out], np.uint8)
+    out[mirror] = _sided("mirror", left[mirror])
+    out[(kinds == "other") | ((material == "other") & unnamed)] = LEGEND["other"]
+    return out
 
 
 def _placed(kind: str, c: npt.NDArray[np.float64], split: float) -> str:
