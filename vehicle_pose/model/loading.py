@@ -145,7 +145,7 @@ def oriented_faces(faces: npt.NDArray[np.integer]) -> npt.NDArray[np.int64]:
     F = len(faces)
     e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     fid = np.repeat(np.arange(F), 3)
-    lo, hi = e.min(1), e.max(1)
+    lo, hi = np.minimum(e[:, 0], e[:, 1]), np.maximum(e[:, 0], e[:, 1])
     fwd = e[:, 0] < e[:, 1]
     key = lo * (int(faces.max()) + 1) + hi
     order = np.argsort(key, kind="stable")
