@@ -201,6 +201,33 @@ def test_a_lamps_clear_cover_is_that_lamp_and_leaves_the_cabin_where_the_windows
     assert {"headlamp_left", "headlamp_right", "taillamp_left", "taillamp_right", "hood", "trunk"} <= names
 
 
+def test_windows_drawn_in_an_opaque_material_whose_name_says_nothing_are_the_windows(sedan):
+    """The anonymous sedan's glass made an opaque body material: a part all above the belt line,
+    over the wheelbase's middle and mostly not facing up is its windows, labelled as the glass
+    was. A roof panel of its own (facing up) stays the roof."""
+    anonymous = Mesh(tuple(replace(p, name=f"mesh{k}") for k, p in enumerate(sedan.mesh.parts)))
+    opaque = Mesh(tuple(replace(p, kind="body") if p.kind == "glass" else p for p in anonymous.parts))
+    assert sum(p.kind == "glass" for p in anonymous.parts) == 1
+    np.testing.assert_array_equal(label_faces(opaque, sedan.info.up, sedan.wheels).labels,
+                                  label_faces(anonymous, sedan.info.up, sedan.wheels).labels)
+
+    # Without any glass, a roof panel of its own is not taken for the windows: splitting it off
+    # the body changes no face's label.
+    bare = Mesh(tuple(p for p in opaque.parts if p.name != next(q.name for q in anonymous.parts if q.kind == "glass")))
+    labels = label_faces(bare, sedan.info.up, sedan.wheels).labels
+    _, normals, _, owner = face_geometry(bare)
+    body = int(np.argmax([len(p.faces) for p in bare.parts]))
+    span = np.flatnonzero(owner == body)
+    top = (labels[span] == LEGEND["roof"]) & (np.abs(normals[span][:, 2]) > 0.9)
+    assert top.sum() >= 8
+    part = bare.parts[body]
+    split = Mesh((*[p for k, p in enumerate(bare.parts) if k != body],
+                  replace(part, name="mesh-panel", faces=part.faces[top]), replace(part, faces=part.faces[~top])))
+    others = np.flatnonzero(owner != body)
+    expected = np.concatenate([labels[others], labels[span][top], labels[span][~top]])
+    np.testing.assert_array_equal(label_faces(split, sedan.info.up, sedan.wheels).labels, expected)
+
+
 def test_a_door_named_without_a_side_is_placed_by_its_faces(sedan):
     """The sedan's body cut in two geometries both called ``Door`` (its left and right halves):
     each becomes a door of its own side by where its faces are, and is not estimated."""

@@ -45,7 +45,7 @@ __all__ = ["LABELLING", "VOCABULARY", "LEGEND", "COLOURS", "SYNONYMS", "PartLabe
            "geometric_labels", "name_part", "model_frame", "part_index", "read_part_file", "part_file_text",
            "ListedParts"]
 
-LABELLING = 4
+LABELLING = 5
 """Version of the labelling; raise it whenever the labels of a mesh change (prepared models
 keep their labels under it)."""
 
@@ -307,6 +307,22 @@ def _outward(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], s: _Shape) 
     return np.where(flip[:, None], -n, n)
 
 
+def _opaque_windows(c: npt.NDArray[np.float64], n: npt.NDArray[np.float64], areas: npt.NDArray[np.float64],
+                    owner: npt.NDArray[np.int64], candidate: npt.NDArray[np.bool_],
+                    belt: float) -> npt.NDArray[np.bool_]:
+    """The faces of every part among ``candidate``'s that is a car's windows by its place: all
+    of it above the ``belt`` line, reaching over the wheelbase's middle (the frame's origin),
+    and most of its area not facing up (a roof panel of its own does)."""
+    out = np.zeros(len(c), bool)
+    for k in np.unique(owner[candidate]):
+        mine = candidate & (owner == k)
+        x = c[mine, 0]
+        up = areas[mine & (np.abs(n[:, 2]) > 0.9)].sum()
+        if c[mine, 2].min() > belt and x.min() < 0.0 < x.max() and up < 0.5 * areas[mine].sum():
+            out |= mine
+    return out
+
+
 def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
                      kinds: npt.NDArray[np.object_] | None = None) -> npt.NDArray[np.uint8]:
     """A label for every face of ``mesh`` from its place in the model's own frame alone.
@@ -316,7 +332,9 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
     nearest. The faces of material kind glass, tyre, wheel and light are treated the same way
     when their names say nothing more, but for glass whose part lies wholly ahead of the front
     axle or behind the rear one and below the windows' lower edge: a lamp's clear cover, a
-    head or tail lamp.
+    head or tail lamp. With no glass known over the cabin, an unnamed body part that stands
+    wholly above the belt over the wheelbase's middle, not mostly facing up, is the windows
+    (:func:`_opaque_windows`).
     """
     frame = model_frame(up_axis, wheels)
     tris, nm, areas, owner = face_geometry(mesh)
@@ -335,6 +353,12 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
             greenhouse[mine] = False
             cover[mine] = True
     s = _shape(c, areas, greenhouse, frame)
+    if greenhouse.sum() < 8:
+        # No glass known over the cabin: windows drawn in a material whose name says nothing.
+        panes = _opaque_windows(c, n, areas, owner, unnamed & (material == "body"), s.belt)
+        if panes.any():
+            glass, greenhouse = glass | panes, greenhouse | panes
+            s = _shape(c, areas, greenhouse, frame)
     for k in np.unique(owner[cover]):
         mine = cover & (owner == k)
         cover[mine] = c[mine, 2].max() < s.belt
