@@ -10,6 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vehicle_pose.geometry.camera import Camera
+from vehicle_pose.geometry.pose import visible_side
 from vehicle_pose.model.mesh import Mesh
 from vehicle_pose.model.metadata import WheelGeometry
 from vehicle_pose.model.parts import COLOURS
@@ -77,13 +78,10 @@ def draw_overlay(
 
 
 def _seen_hubs(wheels: WheelGeometry, camera: Camera) -> npt.NDArray[np.float64]:
-    """The pixels (N, 2) of the wheel centres of each side whose outward axle points towards the
-    camera (none behind it)."""
-    hubs = [np.stack([g.rear, g.front]) for g in (wheels.side("left"), wheels.side("right"))
-            if float((camera.R @ g.axle)[2]) < 0.0]
-    if not hubs:
-        return np.zeros((0, 2))
-    uv = camera.project(np.concatenate(hubs))
+    """The pixels (N, 2) of the wheel centres of the side whose outward axle points towards the
+    camera (:func:`~vehicle_pose.geometry.pose.visible_side`; none behind it)."""
+    near = wheels.side(visible_side(camera, wheels.side("left")))
+    uv = camera.project(np.stack([near.rear, near.front]))
     seen: npt.NDArray[np.float64] = uv[np.all(np.isfinite(uv), axis=1)]
     return seen
 
