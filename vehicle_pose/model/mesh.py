@@ -25,7 +25,7 @@ from vehicle_pose.model.progressive import Progressive, merged_vertices
 # trimesh, cv2 and fast_simplification are imported where they are used: a process that only
 # reads prepared models (vehicle_pose.model.store) never needs them.
 
-__all__ = ["KINDS", "Part", "Mesh", "classify_part", "LUMA"]
+__all__ = ["KINDS", "Part", "Mesh", "classify_part", "column_bounds", "LUMA"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,12 @@ def classify_part(*names: str | None) -> str:
         if any(w in text for w in words):
             return kind
     return "body"
+
+
+def column_bounds(points: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The least and the largest of each column of (N, 3) points, (2, 3): column by column, the
+    same values as a reduction across the rows in a tenth of its time on millions of points."""
+    return np.array([[points[:, k].min() for k in range(3)], [points[:, k].max() for k in range(3)]])
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,9 +121,7 @@ class Mesh:
     @cached_property
     def bounds(self) -> npt.NDArray[np.float64]:
         """Axis-aligned bounds (2, 3): min and max corner."""
-        v = self.vertices
-        # Column by column: the same values, a tenth of the time on millions of vertices.
-        return np.array([[v[:, k].min() for k in range(3)], [v[:, k].max() for k in range(3)]])
+        return column_bounds(self.vertices)
 
     @cached_property
     def box_corners(self) -> npt.NDArray[np.float64]:

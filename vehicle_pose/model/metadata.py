@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from vehicle_pose.errors import ModelError
 from vehicle_pose.geometry.pose import Side, SideGeometry
+from vehicle_pose.model.mesh import column_bounds
 
 __all__ = ["UNITS", "WHEEL_ESTIMATE", "WheelGeometry", "ModelInfo", "parse_axis", "estimate_wheels", "wheel_components"]
 
@@ -200,12 +201,6 @@ _TYRE_DIAMETER = (0.08, 0.24)
 """A tyre's diameter as a share of the vehicle's length (cars, vans and pickups: 0.12-0.19)."""
 
 
-def _bounds(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """The least and the largest of each column of (N, 3) points (column by column: a tenth of
-    the time of a reduction across the rows on a mesh of millions of corners)."""
-    return (np.array([points[:, k].min() for k in range(3)]), np.array([points[:, k].max() for k in range(3)]))
-
-
 def _pieces(points: FloatArray, faces: npt.NDArray[np.int64], grid: float
             ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
     """The corners ``faces`` use, welded by position (to ``grid``), and the connected piece of
@@ -221,7 +216,7 @@ def _pieces(points: FloatArray, faces: npt.NDArray[np.int64], grid: float
     used[faces.reshape(-1)] = True
     index = np.flatnonzero(used)
     points = points[index]
-    origin, top = _bounds(points)
+    origin, top = column_bounds(points)
     grid = max(grid, float((top - origin).max()) / float(1 << 20))
     cells = ((points - origin) * (1.0 / grid)).astype(np.int64)
     key = (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
@@ -262,7 +257,7 @@ def wheel_components(parts: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]], up: F
     if not shapes:
         return None
     locals_ = [v @ frame.T for v, _ in shapes]
-    bounds = [_bounds(loc) for loc in locals_]
+    bounds = [column_bounds(loc) for loc in locals_]
     lo, hi = np.min([b[0] for b in bounds], axis=0), np.max([b[1] for b in bounds], axis=0)
     length = float(hi[0] - lo[0])
     if length <= 0.0:
