@@ -221,12 +221,17 @@ class _Shape:
     cabin: tuple[float, float]  # the forward range of the greenhouse (rear, front)
 
 
+def _glazed(glass: npt.NDArray[np.bool_], areas: npt.NDArray[np.float64]) -> bool:
+    """Whether ``glass`` is enough to read the greenhouse from (8 faces with an area)."""
+    return bool(glass.sum() >= 8 and areas[glass].sum() > 0)
+
+
 def _shape(c: npt.NDArray[np.float64], areas: npt.NDArray[np.float64], glass: npt.NDArray[np.bool_],
            frame: Frame) -> _Shape:
     x, z = c[:, 0], c[:, 2]
     front, rear = float(np.percentile(x, 99.8)), float(np.percentile(x, 0.2))
     top = float(np.percentile(z, 99.8))
-    if glass.sum() >= 8 and areas[glass].sum() > 0:
+    if _glazed(glass, areas):
         belt = float(np.percentile(z[glass], 5))
         cabin = (float(np.percentile(x[glass], 1)), float(np.percentile(x[glass], 99)))
     else:  # no glass named: the greenhouse is what stands above two thirds of the height
@@ -353,7 +358,7 @@ def geometric_labels(mesh: Mesh, up_axis: str, wheels: WheelGeometry,
             greenhouse[mine] = False
             cover[mine] = True
     s = _shape(c, areas, greenhouse, frame)
-    if greenhouse.sum() < 8:
+    if not _glazed(greenhouse, areas):
         # No glass known over the cabin: windows drawn in a material whose name says nothing.
         panes = _opaque_windows(c, n, areas, owner, unnamed & (material == "body"), s.belt)
         if panes.any():
