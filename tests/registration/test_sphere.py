@@ -129,13 +129,20 @@ def test_a_box_alone_reaches_the_pose_no_hint_reaches(sedan, renderer):
     assert projection_error(sedan, free.camera, truth) < 2.0
 
 
-@pytest.mark.slow
-def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(sedan, renderer):
+def _filling(sedan, renderer) -> tuple[np.ndarray, Camera, Camera]:
+    """A photo of the sedan filling the frame, its true camera, and a start camera 8-15 degrees
+    off with ten times the true focal length."""
     truth = _framed(sedan, 35.0, 10.0, 0.97, 1.0)
     photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
     start = _framed(sedan, 45.0, 4.0, 0.8, 10.0)
+    assert 8.0 < rotation_error(start.R, truth.R) < 15.0
+    return photo, truth, start
+
+
+@pytest.mark.slow
+def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(sedan, renderer):
+    photo, truth, start = _filling(sedan, renderer)
     before = rotation_error(start.R, truth.R)
-    assert 8.0 < before < 15.0
     result = register(photo, sedan, init_camera=start, renderer=renderer)
     # The start's focal length is ten times the truth's: the search narrowed to its views finds
     # the rotation and most of the perspective, on the edges at the search size.
@@ -143,6 +150,20 @@ def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(
     assert projection_error(sedan, result.camera, truth) < 0.25 * projection_error(sedan, start, truth)
     assert projection_error(sedan, result.camera, truth) < 10.0 and not result.failed
     assert result.pose_stage == "structure" and "sphere" in result.timings
+
+
+@pytest.mark.slow
+def test_a_start_camera_alone_is_weighed_with_the_edges(sedan, renderer):
+    """The view-sphere search from a start camera prices each pose's turn from the start's
+    rotation (``start_weight``): where the start is trusted far above the edges the pose stays
+    by the start; where it is not trusted at all the edges take it to the truth."""
+    photo, truth, start = _filling(sedan, renderer)
+    trusted, ignored = (register(photo, sedan, init_camera=start, renderer=renderer,
+                                 options=RegistrationOptions.from_flat(start_weight=weight))
+                        for weight in (10.0, 0.0))
+    assert trusted.pose_stage == ignored.pose_stage == "structure"
+    assert rotation_error(trusted.camera.R, start.R) < 3.0
+    assert rotation_error(ignored.camera.R, truth.R) < 0.5 * rotation_error(start.R, truth.R)
 
 
 @pytest.mark.slow

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,6 +13,7 @@ from vehicle_pose.search.views import (
     box_overflow,
     distinct,
     fit_to_box,
+    turned_away,
     view_search,
 )
 from vehicle_pose.segment.region import find_vehicle
@@ -94,6 +96,17 @@ def test_box_shortfall_counts_a_projection_shrunk_inside_the_box(sedan):
     tall = (x0, y0, x1, y1 + h)
     assert box_overflow(cam, points, tall, 0.0, 0.15) == pytest.approx(0.5 - 0.15, rel=1e-6)
     assert box_overflow(cam, points, tall, 0.0) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_turned_away_is_the_squared_angle_from_the_start_in_units_of_the_spread(sedan):
+    start = view(sedan, 30.0, 12.0, width=640, height=480, focal=900.0)
+    assert turned_away(start, start, 10.0) == pytest.approx(0.0, abs=1e-6)
+    for axis in ([0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.4, 0.866]):
+        r = np.radians(20.0) * np.asarray(axis) / np.linalg.norm(axis)
+        turned = Camera(start.K, cv2.Rodrigues(r)[0] @ start.R, start.t + 1.0, start.width, start.height)
+        # Only the rotation counts: 20 degrees is twice a spread of 10, whatever the place.
+        assert turned_away(turned, start, 10.0) == pytest.approx(4.0, rel=1e-6)
+        assert turned_away(turned, start, 20.0) == pytest.approx(1.0, rel=1e-6)
 
 
 @pytest.mark.parametrize(

@@ -169,7 +169,11 @@ class Terms(_Group):
     (:func:`~vehicle_pose.search.views.box_overflow`). The edge term adds ``edge_weight`` times
     the directional chamfer cost of the model's edges (normal creases above ``edge_crease``)
     against the photo's (:class:`~vehicle_pose.loss.edges.EdgeLoss`). The search without a start
-    camera runs without the edge term (``docs/decisions/0007-no-hint-search.md``).
+    camera runs without the edge term (``docs/decisions/0007-no-hint-search.md``). With a start
+    camera and no box, the view-sphere search's cost is raised by ``start_weight`` times the
+    square of the angle the pose is turned from the start's rotation over
+    ``structure.structure_spread`` (a start's rotation error): the start is evidence about the
+    pose, weighed with the edges (``docs/decisions/0039-start-prior.md``).
     """
 
     fit_start_to_box: bool = option(True, "with a start camera and a box: fit the start's place and size to the box",
@@ -182,6 +186,9 @@ class Terms(_Group):
                                          "(box sizes; None: any)", low=0.0, high=1.0)
     edge_weight: float = option(0.5, "with a start camera: weight of the edge alignment term (0: the loss alone)",
                                 low=0.0, high=10.0, public=True)
+    start_weight: float = option(0.03, "with a start camera and no box: weight of the start's rotation in the "
+                                 "view-sphere search, times (degrees turned from it / structure_spread) squared "
+                                 "(0: none)", low=0.0, high=10.0)
     edge_crease: float = option(0.6, "change of a normal component between pixels that makes a model edge",
                                 low=0.0, high=2.0)
 

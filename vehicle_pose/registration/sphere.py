@@ -50,7 +50,7 @@ from vehicle_pose.registration.structure import loss_at
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.templates import ViewTemplates, match, turn_to
-from vehicle_pose.search.views import Box, box_overflow
+from vehicle_pose.search.views import Box, box_overflow, turned_away
 from vehicle_pose.segment.region import VehicleRegion, find_vehicle
 
 __all__ = ["Pose", "SphereSearch", "sphere_search", "half_turn", "sphere_fit", "sphere_pose", "edge_evidence",
@@ -117,7 +117,7 @@ class _Cost:
 
     def __init__(self, image: npt.NDArray[np.uint8], model: VehicleModel, region: Box, box: Box | None,
                  options: RegistrationOptions, renderer: Renderer, edges: PhotoEdges, among: Box,
-                 clutter: float) -> None:
+                 clutter: float, start: Camera | None = None) -> None:
         st = options.structure
         self.chamfer = TwoWayChamfer(image, region=region, tau=st.anchor_tau, crease=options.terms.edge_crease,
                                      edges=edges, among=among, clutter=clutter)
@@ -125,7 +125,7 @@ class _Cost:
         self.mesh = model.exterior(options.pyramid.min_faces, renderer)
         self.renderer = renderer
         self.box, self.points = box, model.mesh.extreme_points(1000)
-        self.terms = options.terms
+        self.terms, self.start, self.spread = options.terms, start, options.structure.structure_spread
         self.count = 0
 
     def __call__(self, camera: Camera) -> float:
@@ -135,6 +135,8 @@ class _Cost:
         if self.box is not None and self.terms.box_weight > 0:
             value += self.terms.box_weight * box_overflow(cam, self.points, self.box, self.terms.box_tolerance,
                                                           self.terms.box_shortfall)
+        if self.start is not None and self.terms.start_weight > 0:
+            value += self.terms.start_weight * turned_away(cam, self.start, self.spread)
         return value
 
 
@@ -366,7 +368,8 @@ def sphere_search(
     union: Box = (min(b[0] for b in small), min(b[1] for b in small), max(b[2] for b in small),
                   max(b[3] for b in small))
     edges = photo_edges(image)
-    costs = [_Cost(image, model, b, client, options, renderer, edges, union, search.sphere_clutter) for b in small]
+    costs = [_Cost(image, model, b, client, options, renderer, edges, union, search.sphere_clutter, init)
+             for b in small]
     first = costs[0]
     if progress is not None:
         progress("view sphere: placing templates", 0, float("nan"))

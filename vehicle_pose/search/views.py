@@ -136,6 +136,16 @@ def fit_to_box(camera: Camera, points: FloatArray, anchor: FloatArray, box: Box,
     return Camera(K, R, depth * ray - pivot, camera.width, camera.height)
 
 
+def turned_away(camera: Camera, start: Camera, spread: float) -> float:
+    """How far ``camera`` is turned from the start camera's rotation, squared in units of
+    ``spread`` degrees (the start's expected rotation error): a start camera is evidence about
+    the pose as the photo is, and the searches from it weigh the two
+    (docs/decisions/0039-start-prior.md)."""
+    c = (float(np.trace(camera.R @ start.R.T)) - 1.0) / 2.0
+    angle = float(np.degrees(np.arccos(min(1.0, max(-1.0, c)))))
+    return (angle / spread) ** 2
+
+
 def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, shortfall: float | None = None) -> float:
     """How far ``points`` project beyond ``box`` grown by ``margin`` of its size on each side,
     summed over the four sides in units of the box's width or height (0 inside).
