@@ -113,7 +113,8 @@ class _Cost:
     """The two-way chamfer of the model's exterior at a camera for the working photo, scored at
     the search size over the target box ``region`` (the photo's ``edges``, found once for every
     target; its edges outside ``region`` but inside ``among`` cost ``clutter`` each), plus the
-    box term with a client's box."""
+    box term with a client's box, and with a ``start`` camera the start's prior
+    (``terms.start_weight``: docs/decisions/0039-start-prior.md)."""
 
     def __init__(self, image: npt.NDArray[np.uint8], model: VehicleModel, region: Box, box: Box | None,
                  options: RegistrationOptions, renderer: Renderer, edges: PhotoEdges, among: Box,
@@ -342,7 +343,9 @@ def sphere_search(
 ) -> SphereSearch:
     """The pose on the working photo ``work`` from the hints (the module docstring).
 
-    ``init`` is a start camera and ``box`` the client's box, both for the working photo.
+    ``init`` is a start camera and ``box`` the client's box, both for the working photo; a start
+    narrows the views to ``sphere_spread`` degrees about it and prices every pose's turn from it
+    (``terms.start_weight``).
     ``targets`` are those of an earlier search of the same photo and hints (found again
     without); ``only`` is the index of the one target searched (each target's by default; every
     target still prices its edges as clutter).

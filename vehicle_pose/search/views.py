@@ -141,9 +141,7 @@ def turned_away(camera: Camera, start: Camera, spread: float) -> float:
     ``spread`` degrees (the start's expected rotation error): a start camera is evidence about
     the pose as the photo is, and the searches from it weigh the two
     (docs/decisions/0039-start-prior.md)."""
-    c = (float(np.trace(camera.R @ start.R.T)) - 1.0) / 2.0
-    angle = float(np.degrees(np.arccos(min(1.0, max(-1.0, c)))))
-    return (angle / spread) ** 2
+    return (rotation_error(camera.R, start.R) / spread) ** 2
 
 
 def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, shortfall: float | None = None) -> float:
