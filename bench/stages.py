@@ -4,7 +4,8 @@ Usage: .venv/bin/python bench/stages.py [--cases N] [--modes hinted-photoreal,hi
        [--real ../shared/real] [--photoreal ../shared/bench] [--option KEY=VALUE ...] [--tag T]
 
 Modes: ``hinted-photoreal`` (start camera and box from each case's ``init.json``),
-``hinted-real`` (the same on the real photos), ``none-real`` and ``none-photoreal`` (no hint).
+``hinted-real`` (the same on the real photos), ``camera-photoreal`` and ``camera-real`` (the start
+camera alone, without the box), ``none-real`` and ``none-photoreal`` (no hint).
 ``--cases N`` takes N cases of each set, spread evenly (0: every case). For every
 registration: the engine's seconds, its evaluations, the stages the result times (the shading
 fit, the structure's and the view-sphere's searches, the part map), and what the engine's clock
@@ -38,7 +39,7 @@ from vehicle_pose.render.renderer import Renderer
 from common import parse_options, photoreal_cases, table, write_report
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
-MODES = ("hinted-photoreal", "hinted-real", "none-real", "none-photoreal")
+MODES = ("hinted-photoreal", "hinted-real", "camera-photoreal", "camera-real", "none-real", "none-photoreal")
 STAGES = ("shading", "structure", "sphere", "photo_search", "parts")
 KINDS = ("draw", "read", "loss", "chamfer", "matching", "grabcut", "photo edges")
 
@@ -105,11 +106,12 @@ def main() -> None:
             if model.info.id not in prep:
                 prep[model.info.id] = prepared(model, renderer)
             photo = load_photo(path)
-            hinted = mode.startswith("hinted")
+            started = mode.startswith(("hinted", "camera"))
             t = time.perf_counter()
             with clocked() as clock:
-                res = register(photo, model, init_camera=Camera.from_dict(hint) if hinted else None,
-                               bbox=hint.get("bbox") if hinted else None, options=options, renderer=renderer)
+                res = register(photo, model, init_camera=Camera.from_dict(hint) if started else None,
+                               bbox=hint.get("bbox") if mode.startswith("hinted") else None, options=options,
+                               renderer=renderer)
             wall = time.perf_counter() - t
             r = {"mode": mode, "case": name, "engine s": res.seconds, "wall s": wall,
                  "evaluations": res.evaluations, "renders": clock.calls.get("draw", 0),
