@@ -15,7 +15,16 @@ from vehicle_pose.loss.edges import TwoWayChamfer
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.procedural import CarSpec, build_car
-from vehicle_pose.registration.sphere import REGION_BORDERS, Pose, SphereSearch, _regions, _vote, _with_twin, half_turn
+from vehicle_pose.registration.sphere import (
+    REGION_BORDERS,
+    Pose,
+    SphereSearch,
+    _regions,
+    _seen_box,
+    _vote,
+    _with_twin,
+    half_turn,
+)
 from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
 from vehicle_pose.search.optimize import make_optimizer
 from vehicle_pose.search.views import view_camera
@@ -150,6 +159,10 @@ def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(
     assert projection_error(sedan, result.camera, truth) < 0.25 * projection_error(sedan, start, truth)
     assert projection_error(sedan, result.camera, truth) < 10.0 and not result.failed
     assert result.pose_stage == "structure" and "sphere" in result.timings
+    # The start says where the vehicle is: it is looked for in the box of the start's projection
+    # and in the frame, not in the regions GrabCut finds without a hint.
+    searched = {tuple(c["target"]) for c in result.candidates}
+    assert searched <= {_seen_box(start, sedan, 4.0), (0.0, 0.0, W - 1.0, H - 1.0)}
 
 
 @pytest.mark.slow

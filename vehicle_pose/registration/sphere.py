@@ -2,8 +2,8 @@
 (``docs/decisions/0020-view-sphere-search.md``).
 
 1. **Targets**: the boxes the vehicle is looked for in. The client's box; else, with a start
-   camera, the box of its projection; else the photo's frame (a claims photo is mostly the car)
-   and the region GrabCut finds.
+   camera, the box of its projection and the photo's frame (a claims photo is mostly the car);
+   else the frame and the regions GrabCut finds.
 2. **Hypotheses** (:func:`~vehicle_pose.search.templates.match`): every template of the model's
    view sphere allowed by the start camera (all of them without one) placed about each target
    at the scales and positions where its projection, cut to the frame, covers the target; the
@@ -162,8 +162,13 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
              between: Callable[[], None] | None = None) -> list[Target]:
     """The boxes the vehicle is looked for in: the client's box (the vehicle segmented in it by
     GrabCut); else the photo's frame (a claims photo is mostly the car), with a start camera the
-    box of its projection first, and the regions GrabCut finds from rectangles 8-30 % inside the
-    border (one box each, those that differ). ``between`` is called before the GrabCuts."""
+    box of its projection first; without a hint, the frame and the regions GrabCut finds from
+    rectangles 8-30 % inside the border (one box each, those that differ). ``between`` is
+    called before the GrabCuts.
+
+    A start camera says where the vehicle is: the regions GrabCut finds without it are not
+    searched (one that holds a lamp or a panel can win, the model shrunk onto it, by a margin
+    of a few thousandths of the cost; docs/decisions/0040-a-start-says-where.md)."""
     H, W = work.shape[:2]
     if box is not None:
         return [Target(box, find_vehicle(work, rect=box).mask)]
@@ -174,6 +179,8 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
             raise PoseError("the start pose puts the model out of the photo")
         if _box_iou(b, out[0].box) < 0.8:
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
+    if init is not None:
+        return out  # the start's box and the frame
     if between is not None:
         between()
     for region in _regions(work):
