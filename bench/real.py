@@ -11,7 +11,9 @@ angle of ``R_est R_gt^T``, degrees), the loss, the confidence and the time. Summ
 half of ``split.json`` (``a`` and ``b``, fixed: choose on one, report on the other; a partial
 case belongs to the half of its source photo) and for all: the median error, Acc pi/6 (share
 within 30 degrees), the share within 10 degrees, the cases that end more than 2 degrees further
-from the annotation than they started, the flags, the median time. ``--half`` runs one half
+from the annotation than they started, the flags, the poses whose projection's box meets the
+car's with an IoU under 0.2 (a model shrunk onto a detail or grown past the frame: a rotation
+error can hide them) and how many of those are unflagged, the median time. ``--half`` runs one half
 only. Writes ``bench/results/<set>_<start>[_TAG].json`` (``<set>`` is the cases' folder name)
 and a contact sheet ``<set>_<start>[_TAG].png`` with the start (left) and final (right) outline
 of every case. ``--stretch`` registers a copy of the model scaled along its file's axes, a CAD
@@ -37,6 +39,9 @@ from common import RESULTS, overlay_pair, parse_options, table, write_report, wr
 
 WORSE_DEG = 2.0
 """A case that ends more than this many degrees further from the annotation than it started."""
+
+OFF_IOU = 0.2
+"""A pose whose projection's box meets the car's box with an IoU below this is off the car."""
 
 
 def stretched(mesh: Path, factors: tuple[float, float, float], folder: Path) -> Path:
@@ -103,6 +108,9 @@ def summarise(label: dict, runs: list[dict]) -> dict:
     start = np.array([r["start_deg"] for r in runs if r["start_deg"] is not None] or [np.nan])
     wrong = final > 30.0
     flagged = np.array([bool(r["failed"]) for r in runs])
+    # A pose whose outline barely meets the car's box (a model shrunk onto a lamp, or grown past
+    # the frame) is a gross failure that a rotation error within 30 degrees can hide.
+    off = np.array([r["box_iou"] < OFF_IOU for r in runs])
     return {
         **label,
         "cases": len(runs),
@@ -115,6 +123,8 @@ def summarise(label: dict, runs: list[dict]) -> dict:
         "flagged": int(flagged.sum()),
         "wrong unflagged": int((wrong & ~flagged).sum()),
         "right flagged": int((~wrong & flagged).sum()),
+        f"box iou < {OFF_IOU}": int(off.sum()),
+        "of them unflagged": int((off & ~flagged).sum()),
         "median s": float(np.median([r["seconds"] for r in runs])),
     }
 
