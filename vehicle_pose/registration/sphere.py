@@ -179,7 +179,6 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
             raise PoseError("the start pose puts the model out of the photo")
         if _box_iou(b, out[0].box) < 0.8:
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
-    if init is not None:
         return out  # the start's box and the frame
     if between is not None:
         between()
