@@ -1,4 +1,4 @@
-"""The confidence of a pose found without a start camera."""
+"""The confidence of a pose: its fit, its uniqueness, the evidence of a vehicle, its agreement with a box."""
 
 from __future__ import annotations
 
@@ -50,3 +50,15 @@ def test_a_pose_the_search_sizes_disagree_on_fails_unless_the_shading_chose_it(a
     if shading:
         checks |= {"loss": 0.05, "shading_margin": 0.5}
     assert confidence(checks) == pytest.approx(expected)
+
+
+@pytest.mark.parametrize("agreement,expected", [(None, 1.0), (0.9, 1.0), (0.7, 1.0), (0.6, 0.75), (0.5, 0.5),
+                                                (0.45, 0.375), (0.18, 0.0)])
+def test_a_pose_that_does_not_match_the_clients_box_is_not_credible(agreement, expected):
+    # A start camera's pose with clear edge evidence: only its agreement with the client's box
+    # (the IoU of the projection's box with it) limits the confidence, 0.5 at IoU 0.5.
+    checks = {"two_way": 0.4, "edge_lead": 0.5, "loss": 0.6, "hinted": 1.0}
+    if agreement is not None:
+        checks["box_agreement"] = agreement
+    assert confidence(checks) == pytest.approx(expected)
+    assert (confidence(checks) >= 0.5) == (agreement is None or agreement >= 0.5)

@@ -20,6 +20,10 @@ def _box(mask: np.ndarray) -> tuple[float, float, float, float]:
     return float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)
 
 
+_EDGES = RegistrationOptions.from_flat(shading_trust=0.0, shading_screen=0.0)
+"""Options that take the edges' pose whatever the shading's loss."""
+
+
 def _centre_and_size(model, camera) -> np.ndarray:
     """The centre (x, y) and geometric mean size of the model's projected box."""
     uv = camera.project(model.mesh.sample_points(1000))
@@ -72,16 +76,34 @@ def test_the_structures_pose_registers_a_hazard_within_a_few_pixels(sedan, rende
     photo, mask, truth = synthesize_hazard(sedan.mesh, truth, hazard, renderer=renderer, seed=seed)
     start = perturbed(truth, seed, degrees=10.0)
     assert projection_error(sedan, start, truth) > 8.0
-    # A shading trust of 0 takes the structure's pose whatever the loss.
+    # A screen of 0 takes the edges' pose whatever the loss: by default the view-sphere search
+    # narrowed to the start refitted to the box.
     result = register(photo, sedan, init_camera=start, bbox=_box(mask), renderer=renderer,
-                      options=RegistrationOptions.from_flat(shading_trust=0.0))
-    assert result.pose_stage == "structure"
+                      options=_EDGES)
+    assert result.pose_stage == "structure" and "sphere" in result.timings and "structure" not in result.timings
+    # The view sphere's 240-px placements and refinement end 1.5-3.1 px off on these 320-px
+    # photos (the anchored search, below, 0.8-1.9 px).
+    assert projection_error(sedan, result.camera, truth) < 3.5
+    assert rotation_error(result.camera.R, truth.R) < 3.0
+    # The pose covers the client's box, and every evaluation (the shading fit's too) is counted.
+    assert result.checks["box_agreement"] > 0.8 and not result.failed
+    data = result.to_dict()
+    assert result.evaluations > sum(level["evaluations"] for level in data["levels"])
+
+
+@pytest.mark.slow
+def test_the_anchored_search_registers_a_hazard_within_a_few_pixels(sedan, renderer):
+    truth = view(sedan, 40.0, 14.0, width=320, height=240, focal=450.0)
+    photo, mask, truth = synthesize_hazard(sedan.mesh, truth, "mirror-floor", renderer=renderer, seed=0)
+    start = perturbed(truth, 0, degrees=10.0)
+    result = register(photo, sedan, init_camera=start, bbox=_box(mask), renderer=renderer,
+                      options=_EDGES.replace(anchored_search=True))
+    assert result.pose_stage == "structure" and "structure" in result.timings and "sphere" not in result.timings
     assert projection_error(sedan, result.camera, truth) < 3.0
     assert rotation_error(result.camera.R, truth.R) < 3.0
-    data = result.to_dict()
-    assert data["pose_stage"] == "structure" and "structure" in data["timings"]
     # The structure's two levels report the named loss on the final mask, and every
     # evaluation (the shading fit's too) is counted.
+    data = result.to_dict()
     assert len(data["levels"]) == 2 and all(0.0 <= level["loss"] <= 1.0 for level in data["levels"])
     assert result.evaluations > sum(level["evaluations"] for level in data["levels"])
 
@@ -111,15 +133,29 @@ def test_without_a_box_and_the_view_sphere_the_shading_pose_stands(sedan, render
     assert result.pose_stage == "shading" and "structure" not in result.timings
 
 
+@pytest.mark.parametrize("boxed", [True, False])
+def test_with_a_box_the_screen_says_whether_the_shading_explains_the_photo(sedan, renderer, boxed):
+    # A trust of 0 and a screen of 1: every shading fit runs to its end; with a box the screen
+    # judges it there and its pose stands, without one the trust does and the edges find the pose.
+    truth = view(sedan, 300.0, 14.0, width=160, height=120, focal=225.0)
+    photo, mask = synthesize(sedan.mesh, truth, renderer=renderer, seed=5)
+    result = register(photo, sedan, init_camera=perturbed(truth, 5, degrees=4.0), renderer=renderer,
+                      bbox=_box(mask) if boxed else None,
+                      options=RegistrationOptions.from_flat(shading_trust=0.0, shading_screen=1.0, max_evaluations=40,
+                                                            fine_evaluations=20, focal_starts=()))
+    assert result.pose_stage == ("shading" if boxed else "structure")
+    assert ("box_agreement" in result.checks) == boxed
+
+
 @pytest.mark.slow
 def test_a_screened_shading_fit_leaves_the_structures_pose_as_it_was(sedan, renderer):
     truth = view(sedan, 40.0, 14.0, width=320, height=240, focal=450.0)
     photo, mask, truth = synthesize_hazard(sedan.mesh, truth, "mirror-floor", renderer=renderer, seed=0)
     start = perturbed(truth, 0, degrees=10.0)
-    # A screen of 0 ends every shading fit after its first level; one of 1 never does.
+    # A screen of 0 ends every shading fit in its first level: after ``screen_after``
+    # evaluations, or (0) at the level's end.
     runs = [register(photo, sedan, init_camera=start, bbox=_box(mask), renderer=renderer,
-                     options=RegistrationOptions.from_flat(shading_trust=0.0, shading_screen=screen))
-            for screen in (0.0, 1.0)]
+                     options=_EDGES.replace(screen_after=after)) for after in (100, 0)]
     screened, full = runs
     assert screened.pose_stage == full.pose_stage == "structure"
     # The structure's search does not start from the shading fit: the pose is the same, for

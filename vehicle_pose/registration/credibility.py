@@ -16,8 +16,27 @@ from vehicle_pose.segment.region import VehicleRegion
 __all__ = ["confidence", "fit_checks"]
 
 
+BOX_AGREEMENT = 0.5
+"""The IoU of a pose's projected box with the client's box at which the pose's agreement with
+the box scores 0.5 (1 from 0.2 more, 0 at 0.2 less): the criterion by which a detection matches
+an object (IoU 0.5, PASCAL VOC), here asked of the registered model against the client's box
+(``docs/decisions/0041-camera-and-box-by-the-view-sphere.md``)."""
+
+
 def confidence(checks: dict[str, float]) -> float:
-    """How credible a pose is, in [0, 1]; below 0.5 is ``failed``.
+    """How credible a pose is, in [0, 1]; below 0.5 is ``failed``: :func:`_pose_confidence`,
+    and with a client's box at most the pose's agreement with it (``box_agreement``, the IoU of
+    the projection's box cut to the frame with the client's box; 0.5 at :data:`BOX_AGREEMENT`):
+    a pose whose outline does not match the box the client drew is not a registration of the
+    vehicle in it, whatever the edges or the shading say of the pose in its own box."""
+    score = _pose_confidence(checks)
+    if "box_agreement" in checks:
+        score = min(score, float(np.clip(0.5 + 2.5 * (checks["box_agreement"] - BOX_AGREEMENT), 0.0, 1.0)))
+    return score
+
+
+def _pose_confidence(checks: dict[str, float]) -> float:
+    """How credible a pose is, in [0, 1], from its own checks.
 
     A pose of the view-sphere search, or any pose from a start camera (``two_way`` in the
     checks): :func:`_edge_confidence`. A pose of the classic chain (``pose_search="classic"``)

@@ -197,11 +197,14 @@ class Terms(_Group):
 class Structure(_Group):
     """The structure's pose, with a start camera and a box (``docs/decisions/0012-structure-first.md``).
 
-    When the shading fit's loss over its maximum is above ``shading_trust`` (the shading model
-    does not explain the photo: real paint and glass mirror their surroundings), the pose is
+    When the shading fit's loss over its maximum is above ``shading_screen`` with a box,
+    ``shading_trust`` without (the shading model does not explain the photo: real paint and
+    glass mirror their surroundings), the pose is
     found on the photo's edges instead, from the client's start (a shading fit whose first
     level ends above ``shading_screen``, or is still above it after ``screen_after``
-    evaluations, stops there: ``docs/decisions/0022-shading-screen.md``):
+    evaluations, stops there: ``docs/decisions/0022-shading-screen.md``,
+    ``0041-camera-and-box-by-the-view-sphere.md``). With a box, by default the view-sphere
+    search narrowed to the start refitted to the box; with ``anchored_search``
     the rotation and focal length are searched on the directional chamfer (truncated at
     ``anchor_tau`` of the diagonal) with the place and size fitted to the box, at
     ``structure_size`` pixels, by the cross-entropy method (``anchor_population`` samples a
@@ -229,14 +232,21 @@ class Structure(_Group):
                                  "averaged", low=1, high=8)
     structure_seed: int = option(0, "seed of the first anchored search's sampler (the others follow it): the "
                                  "pose depends on it by a degree or two on a real photo", low=0)
-    shading_trust: float = option(0.15, "loss over its maximum up to which the shading fit is credible",
-                                  low=0.0, high=1.0)
+    shading_trust: float = option(0.15, "loss over its maximum up to which the shading fit is credible, but with a "
+                                  "start camera and a box (there: shading_screen)", low=0.0, high=1.0)
     shading_screen: float = option(0.3, "with a start camera, where the structure can find the pose instead: the "
                                    "loss over its maximum at the shading fit's first level above which the fit "
-                                   "ends there (at least shading_trust; 1: every level runs)", low=0.0, high=1.0)
+                                   "ends there, and with a box at its end above which the edges find the pose "
+                                   "(at least shading_trust; 1: every level runs, and with a box the shading's "
+                                   "pose stands)",
+                                   low=0.0, high=1.0)
     screen_after: int = option(100, "where the shading fit has a screen: evaluations of its first level after which "
                                "a loss over its maximum still above the screen ends the fit there (0: only at the "
                                "level's end)", low=0)
+    anchored_search: bool = option(False, "with a start camera and a box, where the shading is not credible: the "
+                                   "structure's anchored search in the box (docs/decisions/0012-structure-first.md) "
+                                   "instead of the view-sphere search narrowed to the start refitted to the box "
+                                   "(docs/decisions/0041-camera-and-box-by-the-view-sphere.md)")
     sphere_without_box: bool = option(True, "with a start camera and no box, where the shading is not credible: "
                                       "the pose found by the view-sphere search narrowed to the views near the "
                                       "start (search.sphere_spread)")

@@ -25,7 +25,7 @@ from vehicle_pose.registration.hypotheses import photo_pose
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport, RegistrationResult
-from vehicle_pose.registration.sphere import edge_evidence, sphere_fit, sphere_pose, sphere_search
+from vehicle_pose.registration.sphere import box_agreement, edge_evidence, sphere_fit, sphere_pose, sphere_search
 from vehicle_pose.registration.structure import find_structure, structure_fit
 from vehicle_pose.render.parts import part_map
 from vehicle_pose.render.renderer import Renderer
@@ -170,7 +170,8 @@ def register(
         timings["sphere"] = swept.seconds
         levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
         checks = (swept.checks | fit_checks(work, model, found, None, options.color, renderer)
-                  | edge_evidence(work, model, found.camera, options, renderer))
+                  | edge_evidence(work, model, found.camera, options, renderer)
+                  | ({} if rect is None else box_agreement(found.camera, model, rect)))
         listed = swept.listed()
         start, method = swept.ranked[0].camera, "view-sphere"
         timings["grabcut"] = grabcut_seconds
@@ -184,17 +185,25 @@ def register(
         # Where the structure can find the pose instead, a shading fit that does not explain
         # the photo even at its coarsest level ends there (docs/decisions/0022-shading-screen.md).
         elsewhere = st.structure and (rect is not None or (fg is None and st.sphere_without_box))
-        plan = FitPlan.hinted(options, screen=max(st.shading_screen, st.shading_trust) if elsewhere else None)
+        # With a box, one measure decides whether the shading explains the photo, at the fit's
+        # first level and at its end: on real photos it is far above it from the first level on,
+        # on renders below it. Without a box the fit may shrink onto a panel whose shading it
+        # explains as a render's, and it is credible only up to ``shading_trust``
+        # (docs/decisions/0022-shading-screen.md, 0041-camera-and-box-by-the-view-sphere.md).
+        screen = max(st.shading_screen, st.shading_trust)
+        trust = screen if rect is not None else st.shading_trust
+        plan = FitPlan.hinted(options, screen=screen if elsewhere else None)
         found = fit(work, model, start, options, plan, renderer, optimizer, progress, fg, box=rect, deadline=watch)
         spent, grabcut_seconds = [found], found.grabcut_seconds
         timings["shading"] = sum(level.seconds for level in found.levels)
-        if elsewhere and loss_share(found.loss, work, options.color) > st.shading_trust:
+        if elsewhere and loss_share(found.loss, work, options.color) > trust:
             # The shading does not explain the photo (real paint and glass mirror their
-            # surroundings): the pose is found on the photo's edges instead. In the client's
-            # box, by the structure's anchored search (docs/decisions/0012-structure-first.md);
-            # without a box, by the view-sphere search narrowed to the views near the start
-            # (docs/decisions/0020-view-sphere-search.md).
-            if rect is not None:
+            # surroundings): the pose is found on the photo's edges instead, by the view-sphere
+            # search narrowed to the views near the start, the start refitted to the client's box
+            # where there is one (docs/decisions/0020-view-sphere-search.md, 0040-a-start-says-where.md,
+            # 0041-camera-and-box-by-the-view-sphere.md); with ``anchored_search``, by the
+            # structure's anchored search in the box (docs/decisions/0012-structure-first.md).
+            if rect is not None and st.anchored_search:
                 structure = find_structure(work, model, start, rect, options, renderer, optimizer, progress)
                 timings["structure"] = structure.seconds
                 found, stage = structure_fit(work, model, structure, found, options, renderer), "structure"
@@ -236,6 +245,8 @@ def register(
                 found, stage, start, method = outcome.fit, "structure", outcome.start.camera, outcome.start.source
                 levels, spent = found.levels, [*spent, found]
     timings["grabcut"] = grabcut_seconds
+    if rect is not None:
+        checks = checks | box_agreement(found.camera, model, rect)
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
                    W0, H0, t_start, stage, renderer, lens)
 

@@ -649,6 +649,13 @@ def _promoted(searched: SphereSearch, pose: Pose) -> SphereSearch:
     return replace(searched, refined=refined, checks=checks)
 
 
+def box_agreement(camera: Camera, model: VehicleModel, box: Box) -> dict[str, float]:
+    """``box_agreement``: the IoU of the box of the pose's projection, cut to the frame, with the
+    client's ``box`` (both in the camera's pixels); 0 where the model is not in view."""
+    seen = _seen_box(camera, model, 1.0)
+    return {"box_agreement": 0.0 if seen is None else _box_iou(seen, box)}
+
+
 def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Camera, options: RegistrationOptions,
                   renderer: Renderer) -> dict[str, float]:
     """Evidence of a vehicle where a pose puts it: the pose's two-way chamfer over the box of its

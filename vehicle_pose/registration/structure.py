@@ -23,8 +23,12 @@ window frames, the lights and the wheel arches, and the box the client drew. So:
 
 Both run from the client's start (refitted to the box), not from the shading fit's pose, which
 on a real photo has already shrunk onto a panel. Where the loss does explain the photo (its
-value over its maximum at most ``shading_trust``, the threshold at which the no-hint search's
-confidence calls a fit credible), the shading fit stays the result: it is the more precise.
+value over its maximum at most ``shading_screen`` with the box: on real photos it is far above
+it from the first level on, on renders below it), the shading fit stays the result: it is the
+more precise.
+By default the pose is found by the view-sphere search narrowed to the start instead
+(``docs/decisions/0041-camera-and-box-by-the-view-sphere.md``); this module's anchored search
+runs with ``structure.anchored_search``.
 """
 
 from __future__ import annotations
