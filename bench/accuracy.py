@@ -72,7 +72,7 @@ def run_one(model, renderer, photo, truth, start, options, **kw) -> dict:
             "start_error_px": projection_error(pts, res.start_camera, truth),
             "seconds": res.seconds, "evaluations": res.evaluations, "loss": res.loss, "pose_stage": res.pose_stage,
             "failed": res.failed, "confidence": res.confidence, "camera": res.camera.to_dict(),
-            "start_camera": res.start_camera.to_dict()}
+            "start_camera": res.start_camera.to_dict(), "checks": res.checks}
 
 
 def _tiles(photo, model, renderer, r: dict, name: str) -> tuple[np.ndarray, np.ndarray]:

@@ -62,3 +62,13 @@ def test_a_pose_that_does_not_match_the_clients_box_is_not_credible(agreement, e
         checks["box_agreement"] = agreement
     assert confidence(checks) == pytest.approx(expected)
     assert (confidence(checks) >= 0.5) == (agreement is None or agreement >= 0.5)
+
+
+@pytest.mark.parametrize("two_way,lead,credible", [(0.4, 0.0, True), (0.4, 0.5, True), (2.0, 0.0, False),
+                                                   (0.9, 0.5, False)])
+def test_the_shading_stands_in_for_the_edges_lead_not_for_the_edges(two_way, lead, credible):
+    # A start camera's pose whose shading explains the photo (loss 0.05 of its maximum): a matte
+    # car whose outline leads no other view is credible, a pose that explains none of the edges
+    # in its box (a smooth background's shading) is not.
+    checks = {"two_way": two_way, "edge_lead": lead, "loss": 0.05, "hinted": 1.0}
+    assert (confidence(checks) >= 0.5) == credible

@@ -7,6 +7,7 @@ import pytest
 
 from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.errors import PoseError
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.registration.structure import BoxAnchoredParams, find_structure
 from vehicle_pose.render.synth import synthesize, synthesize_hazard
@@ -165,3 +166,19 @@ def test_a_screened_shading_fit_leaves_the_structures_pose_as_it_was(sedan, rend
     assert screened.evaluations < full.evaluations
     assert screened.timings["shading"] < full.timings["shading"]
     assert projection_error(sedan, screened.camera, truth) < 3.0
+
+
+@pytest.mark.slow
+def test_a_box_drawn_beside_the_car_is_not_a_credible_registration(sedan, renderer):
+    # The car is on the left of the photo; the client's box holds only the smooth background on
+    # the right. The start refitted to the box ends there, and the shading of GrabCut's mask of
+    # the background fits well, but the pose explains none of the edges in its box: no vehicle.
+    truth = view(sedan, 300.0, 14.0, width=320, height=240, focal=450.0)
+    aside = Camera(truth.K, truth.R, truth.t + np.array([-2.2, 0.0, 1.0]), truth.width, truth.height)
+    photo, mask = synthesize(sedan.mesh, aside, renderer=renderer, seed=7)
+    car = _box(mask)
+    assert car[2] < 180
+    beside = (car[2] + 10.0, car[1], 318.0, car[3])
+    result = register(photo, sedan, init_camera=perturbed(aside, 7, degrees=8.0), bbox=beside, renderer=renderer)
+    assert result.failed and result.confidence < 0.5
+    assert result.checks["loss"] < 0.2 and result.checks["two_way"] > 1.0

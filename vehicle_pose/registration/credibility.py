@@ -87,12 +87,13 @@ def _edge_confidence(checks: dict[str, float]) -> float:
     the evidence of a vehicle along the pose's outline, and without a start camera also the
     pose's uniqueness; each score 0.5 at its threshold.
 
-    - evidence: the pose's two-way chamfer leads the median of a ring of other views placed in
-      its box (``edge_lead``; 0.5 at 0.20, 1 from 0.35) and explains most of the edges there
-      (``two_way``; 0.5 at 0.70, 1 up to 0.55): noise leads nothing, an empty photo explains
-      nothing;
-    - or the shading explains the photo (the loss over its maximum, 0.5 at 0.15): a render, a
-      matte car;
+    - evidence: the pose's two-way chamfer explains most of the edges in the box of its
+      projection (``two_way``; 0.5 at 0.70, 1 up to 0.55), and leads the median of a ring of
+      other views placed in that box (``edge_lead``; 0.5 at 0.20, 1 from 0.35) or the shading
+      explains the photo (the loss over its maximum, 0.5 at 0.15: a render, a matte car, whose
+      outline may lead little): noise leads nothing, an empty photo explains nothing, and a
+      smooth background's shading fitted on GrabCut's mask of it explains no edge
+      (``docs/decisions/0041-camera-and-box-by-the-view-sphere.md``);
     - uniqueness (no start camera): the relative margin over the best pose at least 15 degrees
       away (``margin``; 0.5 at :data:`MARGIN`, 1 from 0.2 more); where the shading confirmed the
       pose and judged its rival (``shading_margin``), the relative margin of the two poses'
@@ -105,7 +106,10 @@ def _edge_confidence(checks: dict[str, float]) -> float:
     lead = float(np.clip((checks.get("edge_lead", 0.0) - 0.05) / 0.30, 0.0, 1.0))
     explained = float(np.clip((0.85 - checks["two_way"]) / 0.30, 0.0, 1.0))
     fit = float(np.clip((0.20 - checks.get("loss", 1.0)) / 0.10, 0.0, 1.0))
-    vehicle = max(fit, min(lead, explained))
+    # The shading's explanation stands in for the lead over other views (a matte car's outline
+    # may lead little), not for the edges themselves: a pose that explains none of the edges in
+    # its box is no vehicle, however well a smooth background's shading fits it.
+    vehicle = min(explained, max(fit, lead))
     if checks.get("hinted"):
         return vehicle
     if "shading_margin" in checks:
