@@ -93,7 +93,7 @@ def _edge_confidence(checks: dict[str, float]) -> float:
       explains the photo (the loss over its maximum, 0.5 at 0.15: a render, a matte car, whose
       outline may lead little): noise leads nothing, an empty photo explains nothing, and a
       smooth background's shading fitted on GrabCut's mask of it explains no edge
-      (``docs/decisions/0041-camera-and-box-by-the-view-sphere.md``);
+      (``docs/decisions/0042-the-shading-is-not-the-edges.md``);
     - uniqueness (no start camera): the relative margin over the best pose at least 15 degrees
       away (``margin``; 0.5 at :data:`MARGIN`, 1 from 0.2 more); where the shading confirmed the
       pose and judged its rival (``shading_margin``), the relative margin of the two poses'
