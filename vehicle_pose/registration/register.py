@@ -170,13 +170,12 @@ def register(
         timings["sphere"] = swept.seconds
         levels, spent, grabcut_seconds = found.levels, [found], found.grabcut_seconds
         checks = (swept.checks | fit_checks(work, model, found, None, options.color, renderer)
-                  | edge_evidence(work, model, found.camera, options, renderer)
-                  | ({} if rect is None else box_agreement(found.camera, model, rect)))
+                  | edge_evidence(work, model, found.camera, options, renderer))
         listed = swept.listed()
         start, method = swept.ranked[0].camera, "view-sphere"
         timings["grabcut"] = grabcut_seconds
         return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
-                       W0, H0, t_start, stage, renderer, lens)
+                       W0, H0, t_start, stage, renderer, lens, rect)
     if init_camera is not None:
         source, method = "init_camera", "given"
         timings["start"] = 0.0
@@ -245,10 +244,8 @@ def register(
                 found, stage, start, method = outcome.fit, "structure", outcome.start.camera, outcome.start.source
                 levels, spent = found.levels, [*spent, found]
     timings["grabcut"] = grabcut_seconds
-    if rect is not None:
-        checks = checks | box_agreement(found.camera, model, rect)
     return _result(found, levels, spent, model, options, source, method, start, checks, listed, timings,
-                   W0, H0, t_start, stage, renderer, lens)
+                   W0, H0, t_start, stage, renderer, lens, rect)
 
 
 def _checking(progress: Progress | None, watch: Deadline) -> Progress:
@@ -290,8 +287,12 @@ class Lens:
 def _result(found: Fit, levels: list[LevelReport], spent: list[Fit], model: VehicleModel,
             options: RegistrationOptions, source: str, method: str, start: Camera, checks: dict[str, float],
             listed: list[dict[str, Any]], timings: dict[str, float], W0: int, H0: int,
-            t_start: float, stage: str, renderer: Renderer, lens: Lens) -> RegistrationResult:
-    """The result at the photo's own size, with its part map (:mod:`vehicle_pose.render.parts`)."""
+            t_start: float, stage: str, renderer: Renderer, lens: Lens, box: Box | None) -> RegistrationResult:
+    """The result at the photo's own size, with its part map (:mod:`vehicle_pose.render.parts`);
+    with the client's ``box`` (working-photo pixels) its checks say how well the pose agrees with
+    it (``box_agreement``), in every mode."""
+    if box is not None:
+        checks = checks | box_agreement(found.camera, model, box)
     final = found.camera.scaled(W0, H0)
     t = time.perf_counter()
     parts = part_map(model, final, renderer)
