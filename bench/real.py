@@ -1,8 +1,8 @@
 """Real photos: rotation error against human pose annotations, from a start camera, a box alone or no hint.
 
 Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|gt|box|none] [--no-box]
-       [--half a|b] [--stretch SX,SY,SZ] [--cases N] [--shared ../shared/real] [--option KEY=VALUE ...]
-       [--tag TAG]
+       [--half a|b] [--stretch SX,SY,SZ] [--mirror] [--cases N] [--shared ../shared/real]
+       [--option KEY=VALUE ...] [--tag TAG]
 
 The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were
 made with; rotation only), or of ``--shared ../shared/real-partial`` (the same photos with part
@@ -17,7 +17,10 @@ error can hide them) and how many of those are unflagged, the median time. ``--h
 only. Writes ``bench/results/<set>_<start>[_TAG].json`` (``<set>`` is the cases' folder name)
 and a contact sheet ``<set>_<start>[_TAG].png`` with the start (left) and final (right) outline
 of every case. ``--stretch`` registers a copy of the model scaled along its file's axes, a CAD
-model close to the car but not exact (the annotated rotation still holds).
+model close to the car but not exact (the annotated rotation still holds). ``--mirror`` registers
+each photo turned left to right, with its start, box and annotation mirrored to match: the same
+cars seen in a mirror, photos that no constant was chosen on (the templates, the searches'
+placements and the images' pixels all differ; the CAD model is left-right symmetric).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
+from vehicle_pose.model.metadata import parse_axis
 from vehicle_pose.photo import load_photo
 from vehicle_pose.render.renderer import Renderer
 
@@ -98,6 +102,40 @@ def box_iou(model: VehicleModel, camera: Camera, box: list[float]) -> float:
     return float(inter / union) if union > 0 else 0.0
 
 
+def lateral_mirror(model: VehicleModel) -> tuple[np.ndarray, np.ndarray]:
+    """The model's mirror across its plane of symmetry as ``(M, d)``: ``Y = M X + d``. The file's
+    ``up`` and ``forward`` axes are the library's; the third is across the car, the plane through
+    the bounds' middle."""
+    across = int(np.argmax(np.abs(np.cross(parse_axis(model.info.up), parse_axis(model.info.forward)))))
+    M = np.eye(3)
+    M[across, across] = -1.0
+    lo, hi = model.mesh.bounds
+    d = np.zeros(3)
+    d[across] = lo[across] + hi[across]
+    return M, d
+
+
+def mirrored(photo: np.ndarray, R_gt: np.ndarray, init: dict,
+             model: VehicleModel) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The photo turned left to right, with its annotation and start file to match: the camera
+    mirrored (``F R M``, ``F`` turning the camera's x axis) and the model mirrored across its plane of
+    symmetry (``M``), so the rotation stays a rotation; the same car seen in a mirror, a photo no
+    constant was chosen on. The CAD model must be left-right symmetric, as a car is."""
+    W = photo.shape[1]
+    M, d = lateral_mirror(model)
+    F = np.diag([-1.0, 1.0, 1.0])
+    out = dict(init)
+    if "bbox" in init:
+        x0, y0, x1, y1 = (float(v) for v in init["bbox"])
+        out["bbox"] = [W - 1 - x1, y0, W - 1 - x0, y1]
+    if "K" in init:
+        K = np.asarray(init["K"], float).copy()
+        K[0, 2] = W - 1 - K[0, 2]
+        R = F @ np.asarray(init["R"], float) @ M
+        out.update(K=K.tolist(), R=R.tolist(), t=(F @ np.asarray(init["t"], float) - R @ d).tolist())
+    return np.ascontiguousarray(photo[:, ::-1]), F @ R_gt @ M, out
+
+
 def worse(run: dict) -> bool:
     """Whether a case ended more than :data:`WORSE_DEG` further from the annotation than it started."""
     return run["start_deg"] is not None and run["final_deg"] > run["start_deg"] + WORSE_DEG
@@ -142,7 +180,7 @@ def halves(shared: Path) -> dict[str, str]:
 
 def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
         use_box: bool = True, half: str | None = None,
-        stretch: tuple[float, float, float] | None = None) -> tuple[dict, np.ndarray]:
+        stretch: tuple[float, float, float] | None = None, mirror: bool = False) -> tuple[dict, np.ndarray]:
     models = load_models(shared, stretch)
     renderer = Renderer()
     runs, tiles = [], []
@@ -153,12 +191,14 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         model = models[gt["model"]]
         photo = load_photo(case / "photo.jpg")
         R_gt = np.asarray(gt["R"], float)
-        bbox = json.loads((case / "init.json").read_text())["bbox"]
+        hint = json.loads((case / ("init.json" if start_name in ("gt", "box", "none") else start_name)).read_text())
+        if mirror:
+            photo, R_gt, hint = mirrored(photo, R_gt, hint, model)
+        bbox = hint["bbox"]
         init, box = None, None
         if start_name == "box":
             box = bbox  # the client's box alone: the search without a start camera, in the box
         elif start_name != "none":
-            hint = json.loads((case / ("init.json" if start_name == "gt" else start_name)).read_text())
             init = Camera.from_dict(hint)
             box = hint.get("bbox") if use_box else None
             if start_name == "gt":
@@ -203,19 +243,21 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
 
 
 def report_name(shared: Path, start: str, tag: str, *, no_box: bool = False, half: str | None = None,
-                stretched: bool = False) -> str:
+                stretched: bool = False, mirror: bool = False) -> str:
     """The name of a run's report and contact sheet: the case set, the start, then what differs."""
     return (f"{shared.resolve().name}_" + start.removesuffix(".json") + ("_nobox" if no_box else "")
-            + (f"_{half}" if half else "") + ("_stretched" if stretched else "") + (f"_{tag}" if tag else ""))
+            + (f"_{half}" if half else "") + ("_stretched" if stretched else "") + ("_mirror" if mirror else "")
+            + (f"_{tag}" if tag else ""))
 
 
 def run_and_write(name: str, shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
                   use_box: bool = True, half: str | None = None,
-                  stretch: tuple[float, float, float] | None = None) -> Path:
+                  stretch: tuple[float, float, float] | None = None, mirror: bool = False) -> Path:
     """:func:`run`, then its report (with the options, the box and the stretch) and contact sheet
     written under ``name``, both paths printed; the report's path."""
-    data, tiles = run(shared, start_name, options, cases, use_box=use_box, half=half, stretch=stretch)
+    data, tiles = run(shared, start_name, options, cases, use_box=use_box, half=half, stretch=stretch, mirror=mirror)
     data["stretch"] = stretch
+    data["mirror"] = mirror
     data["options"] = options.flat()
     data["box"] = use_box
     path = write_report(name, data)
@@ -237,6 +279,8 @@ def main() -> None:
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a RegistrationOptions field, e.g. loss=invariant (repeatable)")
     ap.add_argument("--no-box", action="store_true", help="give only the start camera, not the start file's box")
+    ap.add_argument("--mirror", action="store_true",
+                    help="register each photo turned left to right, its start, box and annotation to match")
     ap.add_argument("--tag", default="", help="suffix of the report's name")
     args = ap.parse_args()
     if not (args.shared / "cases").is_dir():
@@ -244,12 +288,12 @@ def main() -> None:
         return
     options = parse_options(args.option)
     name = report_name(args.shared, args.start, args.tag, no_box=args.no_box, half=args.half,
-                       stretched=args.stretch is not None)
+                       stretched=args.stretch is not None, mirror=args.mirror)
     stretch = None if args.stretch is None else tuple(float(v) for v in args.stretch.split(","))
     if stretch is not None and len(stretch) != 3:
         raise SystemExit("--stretch takes three factors SX,SY,SZ")
     run_and_write(name, args.shared, args.start, options, args.cases, use_box=not args.no_box, half=args.half,
-                  stretch=stretch)  # type: ignore[arg-type]
+                  stretch=stretch, mirror=args.mirror)  # type: ignore[arg-type]
 
 
 if __name__ == "__main__":
