@@ -253,7 +253,7 @@ def report_name(shared: Path, start: str, tag: str, *, no_box: bool = False, hal
 def run_and_write(name: str, shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
                   use_box: bool = True, half: str | None = None,
                   stretch: tuple[float, float, float] | None = None, mirror: bool = False) -> Path:
-    """:func:`run`, then its report (with the options, the box and the stretch) and contact sheet
+    """:func:`run`, then its report (with the options, the box, the stretch and the mirror) and contact sheet
     written under ``name``, both paths printed; the report's path."""
     data, tiles = run(shared, start_name, options, cases, use_box=use_box, half=half, stretch=stretch, mirror=mirror)
     data["stretch"] = stretch
