@@ -1,7 +1,7 @@
 """The phone's focal length: a registration with the photo's EXIF focal length against the same
 photo with its EXIF stripped.
 
-Usage: .venv/bin/python bench/exif.py [--views N] [--seed S] [--option KEY=VALUE ...] [--tag TAG]
+Usage: .venv/bin/python bench/exif.py [--views N] [--seed S] [--exact] [--option KEY=VALUE ...] [--tag TAG]
 
 For every shipped model, ``--views`` random views (:func:`random_framed_view`: azimuth all
 round, elevation 3-30 degrees, the car 40-80 % of a 640x480 frame), each with a lens drawn
@@ -11,8 +11,9 @@ the edges find the pose). Each photo is written as a JPEG twice: with EXIF as a 
 (FocalLengthIn35mmFilm: the true equivalent off by up to 4 % either way, as the width and
 diagonal conventions of 4:3 sensors differ, then rounded to a whole millimetre; every third
 photo in the focal plane form instead: FocalLength and FocalPlaneXResolution of a 5.6 mm wide
-sensor), and stripped of it. Both are read back as the service reads them and registered with
-no hint.
+sensor), and stripped of it; with ``--exact``, every photo's EXIF in the focal plane form with
+the true focal length (to a hundredth of a millimetre), the views the same. Both are read back
+as the service reads them and registered with no hint.
 
 Reports per model and over all: the focal length's error (% of the true one), the projection
 error of the model's points (pixels at 640 wide), the rotation error, and the ratio of the
@@ -72,6 +73,14 @@ def phone_tags(truth: Camera, rng: np.random.Generator, focal_plane: bool) -> di
             0xA003: truth.height}
 
 
+def exact_tags(truth: Camera) -> dict[int, object]:
+    """EXIF that gives the true focal length: the focal plane form, the focal length in
+    hundredths of a millimetre (``--exact``)."""
+    per_mm = truth.width / SENSOR_MM
+    return {0x920A: round(truth.focal / per_mm, 2), 0xA20E: per_mm * 25.4, 0xA210: 2, 0xA002: truth.width,
+            0xA003: truth.height}
+
+
 def summary(rows: list[dict], key: str) -> dict:
     def med(name: str) -> float:
         return float(np.median([r[name] for r in rows])) if rows else float("nan")
@@ -89,6 +98,8 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tag", default="")
+    ap.add_argument("--exact", action="store_true",
+                    help="EXIF with the true focal length (the focal plane form), not as a phone rounds it")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a registration option (repeatable), as bench/real.py takes it")
     args = ap.parse_args()
@@ -114,8 +125,10 @@ def main() -> None:
                 photo, _ = synthesize(model.mesh, truth, renderer=renderer, seed=k)
             else:
                 photo, _, truth = synthesize_hazard(model.mesh, truth, "mirror-paint", renderer=renderer, seed=k)
-            form = "focal_plane" if k % 3 == 2 else "35mm"
-            tagged = jpeg(photo, phone_tags(truth, rng, form == "focal_plane"))
+            form = "focal_plane" if k % 3 == 2 or args.exact else "35mm"
+            # The phone's tags are drawn either way, so that every view is the same with --exact.
+            tags = phone_tags(truth, rng, k % 3 == 2)
+            tagged = jpeg(photo, exact_tags(truth) if args.exact else tags)
             stripped = jpeg(photo, None)
             row = {"model": model_id, "kind": kind, "form": form, "azimuth": view["azimuth"],
                    "elevation": view["elevation"], "focal": truth.focal, "equivalent_mm": equivalent}
