@@ -60,24 +60,21 @@ def jpeg(photo: np.ndarray, tags: dict[int, object] | None) -> bytes:
     return out.getvalue()
 
 
+def focal_plane_tags(truth: Camera, factor: float = 1.0) -> dict[int, object]:
+    """The focal plane form for the true camera: FocalLength (the true one times ``factor``, in
+    hundredths of a millimetre) and FocalPlaneXResolution of a ``SENSOR_MM`` wide sensor."""
+    per_mm = truth.width / SENSOR_MM
+    return {0x920A: round(truth.focal / per_mm * factor, 2), 0xA20E: per_mm * 25.4, 0xA210: 2,
+            0xA002: truth.width, 0xA003: truth.height}
+
+
 def phone_tags(truth: Camera, rng: np.random.Generator, focal_plane: bool) -> dict[int, object]:
     """EXIF as a phone writes it for the true camera (see the module docstring)."""
     diagonal = float(np.hypot(truth.width, truth.height))
     equivalent = truth.focal / diagonal * FULL_FRAME_DIAGONAL
     if focal_plane:
-        per_mm = truth.width / SENSOR_MM
-        focal_mm = truth.focal / per_mm * float(rng.uniform(0.98, 1.02))
-        return {0x920A: round(focal_mm, 2), 0xA20E: per_mm * 25.4, 0xA210: 2, 0xA002: truth.width,
-                0xA003: truth.height}
+        return focal_plane_tags(truth, float(rng.uniform(0.98, 1.02)))
     return {0xA405: int(round(equivalent * float(rng.uniform(0.96, 1.04)))), 0xA002: truth.width,
-            0xA003: truth.height}
-
-
-def exact_tags(truth: Camera) -> dict[int, object]:
-    """EXIF that gives the true focal length: the focal plane form, the focal length in
-    hundredths of a millimetre (``--exact``)."""
-    per_mm = truth.width / SENSOR_MM
-    return {0x920A: round(truth.focal / per_mm, 2), 0xA20E: per_mm * 25.4, 0xA210: 2, 0xA002: truth.width,
             0xA003: truth.height}
 
 
@@ -128,7 +125,7 @@ def main() -> None:
             form = "focal_plane" if k % 3 == 2 or args.exact else "35mm"
             # The phone's tags are drawn either way, so that every view is the same with --exact.
             tags = phone_tags(truth, rng, k % 3 == 2)
-            tagged = jpeg(photo, exact_tags(truth) if args.exact else tags)
+            tagged = jpeg(photo, focal_plane_tags(truth) if args.exact else tags)
             stripped = jpeg(photo, None)
             row = {"model": model_id, "kind": kind, "form": form, "azimuth": view["azimuth"],
                    "elevation": view["elevation"], "focal": truth.focal, "equivalent_mm": equivalent}
