@@ -1,18 +1,15 @@
-"""The fit: perspective probes, the first level's spread search, the second level's probe of the
-start, and the screen that ends a fit the shading does not explain."""
+"""The fit: perspective probes, the first level's spread search, and the screen that ends a fit the
+shading does not explain."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from vehicle_pose import RegistrationOptions, register
-from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.registration.fit import FitPlan, fit, level_sizes, loss_share, probe_factors
-from vehicle_pose.render.synth import LIGHTINGS, border_crop_camera, synthesize
+from vehicle_pose.render.synth import border_crop_camera, synthesize
 from vehicle_pose.search.optimize import NelderMeadRestarts
-from vehicle_pose.search.views import view_camera
 
 from helpers import perturbed, projection_error, view
 
@@ -115,52 +112,3 @@ def test_a_rough_start_on_a_car_the_frame_cuts_is_registered(sedan, renderer):
     box = (max(0.0, uv[:, 0].min()), max(0.0, uv[:, 1].min()), 320.0, min(240.0, uv[:, 1].max()))
     result = register(photo, sedan, init_camera=start, bbox=box, renderer=renderer)
     assert projection_error(sedan, result.camera, truth) < 3.5
-
-
-def test_the_second_level_probes_the_fit_s_own_start(sedan, renderer):
-    truth = view(sedan, 40.0, 12.0, width=320, height=240, focal=450.0)
-    photo, _ = synthesize(sedan.mesh, truth, renderer=renderer, seed=3)
-    start = perturbed(truth, 3, degrees=8.0)
-    optimizer = NelderMeadRestarts()
-    # No other probe: no dolly zooms and no spread search, hence no runner-up.
-    options = RegistrationOptions.from_flat(max_evaluations=60, fine_evaluations=30, focal_starts=(),
-                                            focal_evaluations=20, spread_evaluations=0)
-    unprobed = options.replace(start_probe=False)
-    probed = fit(photo, sedan, start, options, FitPlan.hinted(options), renderer, optimizer)
-    plain = fit(photo, sedan, start, unprobed, FitPlan.hinted(unprobed), renderer, optimizer)
-    assert len(probed.levels) == len(plain.levels) == 2
-    # The first level is the same; the second searches from the start as well, for the probes'
-    # budget (the start's 20 evaluations), and ends no higher.
-    assert probed.levels[0].objective == plain.levels[0].objective
-    assert probed.levels[1].evaluations >= plain.levels[1].evaluations + 20
-    assert probed.levels[1].objective <= plain.levels[1].objective
-
-
-def test_a_first_level_s_walk_off_a_good_start_is_undone_where_the_frame_cuts_the_car(library, renderer):
-    # An SUV from behind on its right, a third of it beyond the right border, its start 2.3
-    # degrees and a tenth of the focal length off (decision 0044): the first level, at 160 px,
-    # walks off the start, and without the start's probe at the second level the fit ends
-    # 1.86 px off; with it, 1.18 px.
-    suv = library.load("suv")
-    W, H = 640, 480
-    probe = view_camera(suv, 213.14, 20.32, 0.0, (0.0, 0.0, W - 1.0, H - 1.0), W, H, 1.4 * W)
-    uv = probe.project(suv.mesh.sample_points(600))
-    aspect = np.ptp(uv[:, 1]) / np.ptp(uv[:, 0])
-    bw, cx = 1.0629 * W, 409.11
-    truth = view_camera(suv, 213.14, 20.32, 0.0, (cx - bw / 2, H / 2 - bw * aspect / 2, cx + bw / 2,
-                                                  H / 2 + bw * aspect / 2), W, H, 1.4 * W)
-    uv = truth.project(suv.mesh.sample_points(2000))
-    assert 0.15 < np.mean(uv[:, 0] >= W) < 0.35
-    photo, _ = synthesize(suv.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=7)
-    turn = Rotation.from_rotvec([-0.00793, -0.00720, -0.00424]).as_matrix()
-    centre = suv.mesh.sphere[0]
-    K = truth.K.copy()
-    K[0, 0] *= 1.1
-    K[1, 1] *= 1.1
-    start = Camera(K, turn @ truth.R, truth.R @ centre + truth.t - turn @ truth.R @ centre, W, H)
-    box = [max(0.0, uv[:, 0].min()), max(0.0, uv[:, 1].min()), min(W - 1.0, uv[:, 0].max()),
-           min(H - 1.0, uv[:, 1].max())]
-    errors = [projection_error(suv, register(photo, suv, init_camera=start, bbox=box, renderer=renderer,
-                                             options=RegistrationOptions.from_flat(start_probe=on)).camera, truth)
-              for on in (False, True)]
-    assert errors[1] < 1.5 < errors[0]

@@ -313,13 +313,8 @@ def fit(
                 view = ViewParams.about(camera, frame)
                 starts = [view.dolly_zoom(f) for f in probe_factors(camera, options)]
             starts += [runner_up] if runner_up is not None else []
-            if options.probes.start_probe:
-                # And the fit's own start: at 160 pixels a quarter of a car cut by the frame does
-                # not pin the pose, and the first level may walk a few degrees off a start that
-                # the finer photo prefers (docs/decisions/0044-the-start-probed.md).
-                starts.append(start)
         if starts:
-            probes = [search(s, budgets.focal_evaluations) for s in starts]
+            probes = [search(start, budgets.focal_evaluations) for start in starts]
             best_probe = min(probes, key=lambda e: e[0].fun)
             runs += probes
             if best_probe[0].fun < runs[0][0].fun * (1.0 + options.probes.probe_margin):

@@ -291,15 +291,11 @@ class Probes(_Group):
     loss times ``1 + probe_margin`` is searched on. From a start camera, the first level also runs
     an evolution strategy from the start with a spread of ``start_spread`` first-level simplex
     steps (about how far a rough start is off), and its runner-up is probed at the second level
-    as well (``docs/decisions/0025-spread-first-level.md``). With ``start_probe`` the second level
-    also searches from the fit's own start: a move of the first level, on a photo of 160 pixels,
-    that the finer level does not confirm is undone (``docs/decisions/0044-the-start-probed.md``).
-    ``dolly_pivot`` is where the view
+    as well (``docs/decisions/0025-spread-first-level.md``). ``dolly_pivot`` is where the view
     coordinates' focal length keeps the image size (bounding-sphere radii in front of the
     centre, ``docs/decisions/0003-view-coordinates.md``).
     """
 
-    start_probe: bool = option(True, "the second level also searches from the fit's start, as a probe")
     focal_starts: tuple[float, ...] = option((0.6, 1.7), "focal factors of the perspective probes", low=1e-3,
                                              public=True, flag="--no-focal-probes", flag_value=())
     focal_range: tuple[float, float] = option((0.7, 4.0), "focal lengths of most photos (image widths)", low=1e-3)
