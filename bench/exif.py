@@ -138,6 +138,7 @@ def main() -> None:
                 row[f"proj_{name}"] = projection_error(points, cam, truth, width=640)
                 row[f"rot_{name}"] = rotation_error(cam.R, truth.R)
                 row[f"source_{name}"] = result.focal["source"]
+                row[f"stage_{name}"] = result.pose_stage
                 row[f"seconds_{name}"] = result.seconds
                 pair.append(draw_overlay(decode_photo(data), model.mesh, cam, renderer=renderer))
             runs.append(row)
@@ -146,7 +147,8 @@ def main() -> None:
             print(f"{model_id:9s} {kind:12s} {form:11s} {equivalent:5.1f} mm  focal err "
                   f"{row['focal_stripped']:5.1f} % -> {row['focal_exif']:5.1f} %  proj "
                   f"{row['proj_stripped']:6.2f} -> {row['proj_exif']:6.2f} px  rot "
-                  f"{row['rot_stripped']:5.1f} -> {row['rot_exif']:5.1f} deg  ({row['source_exif']})", flush=True)
+                  f"{row['rot_stripped']:5.1f} -> {row['rot_exif']:5.1f} deg  ({row['source_exif']}; "
+                  f"{row['stage_stripped']} -> {row['stage_exif']})", flush=True)
             k += 1
         rows.append(summary(mine, model_id))
     for kind in ("matte", "mirror-paint"):
