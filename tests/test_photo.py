@@ -42,6 +42,12 @@ def test_bad_bytes_are_photo_errors(data):
         decode_photo(data)
 
 
+def test_bytes_in_no_image_format_are_named_so_without_the_reader_s_internals():
+    with pytest.raises(PhotoError, match="not a readable image: its bytes are in no image format") as caught:
+        decode_photo(b"%PDF-1.4 not a photo")
+    assert "BytesIO" not in str(caught.value) and " at 0x" not in str(caught.value)
+
+
 def _photos() -> list[bytes]:
     rng = np.random.default_rng(1)
     rgb = Image.fromarray(rng.integers(0, 255, (120, 200, 3), dtype=np.uint8))

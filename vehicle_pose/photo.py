@@ -38,8 +38,10 @@ def _opened(data: bytes, max_pixels: int) -> Iterator[Image.Image]:
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
         raise PhotoTooLargeError(
             f"photo declares too many pixels (more than {max_pixels} are refused): {exc}") from None
-    except UnidentifiedImageError as exc:
-        raise PhotoError(f"not a readable image: {exc}") from None
+    except UnidentifiedImageError:
+        # PIL's message names its in-memory buffer (an address), which tells a client nothing.
+        raise PhotoError("not a readable image: its bytes are in no image format the reader knows "
+                         "(JPEG, PNG, WebP, TIFF, BMP, GIF, ...)") from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise PhotoError(f"image data is damaged or truncated: {exc}") from None
 
