@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import threading
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from PIL import Image
 from pydantic import ValidationError
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
@@ -17,7 +19,7 @@ from starlette.responses import Response
 
 from app.problems import Problem
 from app.schemas import JobError, Links, Progress, RegistrationOptionsIn, RegistrationOut
-from app.uploads import sniff_image
+from app.uploads import SNIFF_BYTES, sniff_image
 from core.config import Settings
 from core.library import get_library
 from core.models import Client, JobStatus, Registration, as_utc, new_id
@@ -30,7 +32,7 @@ from vehicle_pose import (
 )
 from vehicle_pose.errors import UnknownModelError
 from vehicle_pose.model.library import AUTO
-from vehicle_pose.photo import verify_photo
+from vehicle_pose.photo import decode_photo, resized, verify_photo
 from vehicle_pose.search.views import parse_bbox
 
 
@@ -49,9 +51,10 @@ _DECODING = threading.BoundedSemaphore(2)
 
 def check_photo(data: bytes, settings: Settings) -> Photo:
     """The photo if the engine can use it: 415 for a non-image, 413 for a bomb, 422 if damaged."""
-    media_type = sniff_image(data[:16])
+    media_type = sniff_image(data[:SNIFF_BYTES])
     if media_type is None:
-        raise Problem(415, "unsupported-media-type", "the photo is not a JPEG, PNG, WebP, TIFF or BMP image")
+        raise Problem(415, "unsupported-media-type",
+                      "the photo is not a JPEG, PNG, HEIC/HEIF, AVIF, WebP, TIFF or BMP image")
     try:
         with _DECODING:
             width, height = verify_photo(data, max_pixels=settings.max_photo_pixels)
@@ -188,15 +191,43 @@ def visible_job(session: Session, client: Client, job_id: str) -> Registration:
     return job
 
 
-def stored_response(key: str | None, media_type: str, what: str) -> Response:
-    """The stored object under ``key`` as a response; 404 when there is none (yet, or any more)."""
+def _stored(key: str | None, what: str) -> bytes:
     if key is None:
         raise Problem(404, "not-found", f"this registration has no {what} yet")
     try:
-        data = get_storage().get(key)
+        return get_storage().get(key)
     except ObjectMissing:
         raise Problem(404, "not-found", f"the {what} is no longer stored") from None
-    return Response(data, media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
+
+
+def stored_response(key: str | None, media_type: str, what: str) -> Response:
+    """The stored object under ``key`` as a response; 404 when there is none (yet, or any more)."""
+    return Response(_stored(key, what), media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
+
+
+BROWSER_TYPES = frozenset(("image/jpeg", "image/png", "image/webp", "image/avif", "image/bmp"))
+"""The photo types every current browser shows in an ``<img>``; TIFF and HEIC/HEIF are not."""
+
+VIEW_SIZE = 1600
+"""The longer side (pixels) of a photo's JPEG rendition (:func:`viewable_photo`)."""
+
+
+def viewable_photo(job: Registration, settings: Settings) -> Response:
+    """A JPEG of the registration's photo that a browser shows: upright (its EXIF orientation
+    applied), its longer side at most :data:`VIEW_SIZE`; for a photo in a type a browser does not
+    show (:data:`BROWSER_TYPES`: a phone's HEIC, a TIFF)."""
+    data = _stored(job.photo_key, "photo")
+    try:
+        with _DECODING:
+            rgb = decode_photo(data, max_pixels=settings.max_photo_pixels, reduce_to=VIEW_SIZE)
+    except PhotoError as exc:  # it was verified on upload: only a damaged store gets here
+        raise Problem(422, exc.code, str(exc)) from None
+    scale = VIEW_SIZE / max(rgb.shape[:2])
+    if scale < 1.0:
+        rgb = resized(rgb, max(1, round(rgb.shape[1] * scale)), max(1, round(rgb.shape[0] * scale)))
+    out = io.BytesIO()
+    Image.fromarray(rgb).save(out, format="JPEG", quality=90)
+    return Response(out.getvalue(), media_type="image/jpeg", headers={"Cache-Control": "private, max-age=3600"})
 
 
 def links(job: Registration) -> Links:

@@ -12,7 +12,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.problems import problem_response
 
-# Magic numbers of the photo formats the engine decodes; the declared Content-Type is ignored.
+# Magic numbers of the photo formats the engine decodes (HEIF and AVIF below); the declared
+# Content-Type is ignored.
 _SIGNATURES: tuple[tuple[bytes, int, str], ...] = (
     (b"\xff\xd8\xff", 0, "image/jpeg"),
     (b"\x89PNG\r\n\x1a\n", 0, "image/png"),
@@ -23,14 +24,38 @@ _SIGNATURES: tuple[tuple[bytes, int, str], ...] = (
 )
 
 
+# HEIF and AVIF are ISO base media files: a "ftyp" box first, whose brands (the major one at
+# bytes 8-12, compatible ones from byte 16 to the box's end) say what the file holds.
+_HEIC_BRANDS = frozenset((b"heic", b"heix", b"heim", b"heis", b"hevc", b"hevx", b"hevm", b"hevs"))
+_HEIF_BRANDS = frozenset((b"mif1", b"msf1", b"mif2"))
+_AVIF_BRANDS = frozenset((b"avif", b"avis"))
+
+SNIFF_BYTES = 64
+"""How many of a file's first bytes :func:`sniff_image` needs to tell every format apart."""
+
+
+def _iso_media_type(head: bytes) -> str | None:
+    """The media type of a HEIF or AVIF file from its ``ftyp`` box, or None when it is neither."""
+    if head[4:8] != b"ftyp" or len(head) < 12:
+        return None
+    size = int.from_bytes(head[0:4], "big")
+    brands = [head[8:12]] + [head[i : i + 4] for i in range(16, min(size, len(head)) - 3, 4)]
+    for kinds, media_type in ((_AVIF_BRANDS, "image/avif"), (_HEIC_BRANDS, "image/heic"),
+                              (_HEIF_BRANDS, "image/heif")):
+        if any(b in kinds for b in brands):
+            return media_type
+    return None
+
+
 def sniff_image(head: bytes) -> str | None:
-    """The media type of an image from its first bytes, or None when it is no supported image."""
+    """The media type of an image from its first bytes (:data:`SNIFF_BYTES` of them tell every
+    format), or None when it is no supported image."""
     for magic, offset, media_type in _SIGNATURES:
         if head[offset : offset + len(magic)] == magic:
             if media_type == "image/webp" and not head.startswith(b"RIFF"):
                 continue
             return media_type
-    return None
+    return _iso_media_type(head)
 
 
 class BodySizeLimit:

@@ -91,15 +91,18 @@ def test_cli_options_reach_the_engine(tmp_path):
 
 
 def test_cli_reads_the_exif_focal_length_and_warns_of_one_that_cannot_be(tmp_path):
+    import pillow_heif
     from PIL import ExifTags
 
+    pillow_heif.register_heif_opener()  # to write a phone's HEIC
     with Image.open(ROOT / "examples" / "sedan.jpg") as img:
         pixels = img.copy()
-    for equivalent, warned in ((1000, True), (40, False)):
+    for equivalent, warned, fmt in ((1000, True, "JPEG"), (40, False, "JPEG"), (40, False, "HEIF")):
         exif = Image.Exif()
+        exif[0x0112] = 1
         exif.get_ifd(ExifTags.IFD.Exif)[0xA405] = equivalent
-        photo, out = tmp_path / f"lens{equivalent}.jpg", tmp_path / f"r{equivalent}.json"
-        pixels.save(photo, "JPEG", quality=95, exif=exif)
+        photo, out = tmp_path / f"lens{equivalent}.{fmt.lower()}", tmp_path / f"r{equivalent}{fmt}.json"
+        pixels.save(photo, fmt, quality=95, exif=exif.tobytes())
         proc = _cli("register", str(photo), "--model", "sedan", "--init-camera", "examples/sedan_init.json",
                     "--single-level", "--max-evaluations", "40", "--out", str(out))
         assert proc.returncode == 0, proc.stderr

@@ -26,6 +26,10 @@ def test_decodes_every_mode():
                      (rgb.convert("P"), "PNG"), (Image.fromarray(np.full((20, 30), 40000, np.uint16)), "PNG")]:
         arr = decode_photo(_encode(img, fmt))
         assert arr.shape == (20, 30, 3) and arr.dtype == np.uint8
+    # A 32-bit float TIFF of values in [0, 1] keeps its gradient (not all black).
+    ramp = np.tile(np.linspace(0.0, 1.0, 30, dtype=np.float32), (20, 1))
+    arr = decode_photo(_encode(Image.fromarray(ramp), "TIFF"))
+    assert arr[0, 0, 0] == 0 and arr[0, -1, 0] == 255 and np.all(np.diff(arr[0, :, 0].astype(int)) >= 0)
 
 
 def test_exif_orientation_is_applied():
@@ -105,7 +109,7 @@ def _with_lens(size: tuple[int, int], tags: dict[int, object], orientation: int 
     exif = Image.Exif()
     exif[0x0112] = orientation
     exif.get_ifd(ExifTags.IFD.Exif).update(tags)
-    return _encode(img, fmt, exif=exif)
+    return _encode(img, fmt, exif=exif.tobytes())  # bytes: pillow-heif reads the orientation from them
 
 
 def test_the_35mm_equivalent_is_converted_across_the_diagonal():
@@ -153,6 +157,50 @@ def test_a_photo_without_a_usable_focal_length_has_none_and_no_warning():
     # A focal length without the sensor's size says nothing of the field of view.
     lens = read_focal(_with_lens((800, 600), {0x920A: 4.2}))
     assert lens.widths is None and lens.warning is None and lens.focal_mm == pytest.approx(4.2)
+
+
+_PHONE_FORMATS = ["HEIF", "AVIF"]  # an iPhone's HEIC (pillow-heif), AVIF (Pillow)
+
+
+@pytest.mark.parametrize("fmt", _PHONE_FORMATS)
+def test_phone_formats_are_decoded_upright_as_a_jpeg_is(fmt):
+    # A picture with a marked corner stored turned by its EXIF orientation, as phones store a
+    # portrait photo: HEIF turns it while decoding, JPEG and AVIF by the orientation.
+    img = np.full((60, 80, 3), (200, 40, 40), np.uint8)
+    img[:20, :20] = (30, 30, 220)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    data = _encode(Image.fromarray(img), fmt, exif=exif.tobytes(), quality=95)
+    arr, ref = decode_photo(data), decode_photo(_encode(Image.fromarray(img), "JPEG", exif=exif.tobytes(), quality=95))
+    assert arr.shape == ref.shape == (80, 60, 3)
+    assert verify_photo(data) == (60, 80)
+    assert np.abs(arr.astype(int) - ref.astype(int)).mean() < 6
+    assert arr[:20, -20:, 2].mean() > 180 and arr[:20, :20, 2].mean() < 80  # the marked corner turned right
+
+
+@pytest.mark.parametrize("fmt", _PHONE_FORMATS)
+@pytest.mark.parametrize("orientation", [1, 6])
+def test_a_phone_format_s_exif_gives_the_focal_length_a_jpeg_s_does(fmt, orientation):
+    for tags in ({0x920A: 4.2, 0xA20E: 1000 / 5.6 * 25.4, 0xA210: 2, 0xA002: 1000, 0xA003: 750},
+                 {0xA405: 26, 0xA002: 1000, 0xA003: 750}):
+        lens = read_focal(_with_lens((1000, 750), tags, orientation, fmt))
+        ref = read_focal(_with_lens((1000, 750), tags, orientation))
+        assert lens.warning is None and ref.warning is None and lens.form == ref.form
+        assert lens.widths == pytest.approx(ref.widths)
+        seen = 750 if orientation == 6 else 1000
+        assert decode_photo(_with_lens((1000, 750), tags, orientation, fmt)).shape[1] == seen
+
+
+@pytest.mark.parametrize("cut", [0.3, 0.9])
+def test_a_truncated_heic_is_refused(cut):
+    img = Image.fromarray(np.random.default_rng(3).integers(0, 255, (240, 320, 3), dtype=np.uint8))
+    data = _encode(img, "HEIF")
+    assert decode_photo(data).shape == (240, 320, 3)
+    short = data[: int(len(data) * cut)]
+    with pytest.raises(PhotoError):
+        decode_photo(short)
+    with pytest.raises(PhotoError):
+        verify_photo(short)
 
 
 def test_the_focal_length_of_bad_bytes_is_a_photo_error():

@@ -1,5 +1,8 @@
 """Reading photos into RGB arrays (EXIF orientation applied, any mode converted, bombs refused),
-and the lens's focal length from their EXIF."""
+and the lens's focal length from their EXIF.
+
+Phones' own formats are read as well as JPEG: HEIC/HEIF (an iPhone camera's default) through
+pillow-heif's plugin, AVIF through Pillow's."""
 
 from __future__ import annotations
 
@@ -12,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+import pillow_heif
 from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
@@ -20,6 +24,15 @@ __all__ = ["load_photo", "load_photo_focal", "decode_photo", "verify_photo", "re
            "resized", "resized_mask", "MAX_PIXELS", "EQUIVALENT_RANGE", "FULL_FRAME_DIAGONAL"]
 
 MAX_PIXELS = 50_000_000
+
+# HEIC/HEIF photos open as any other (only the primary image: a phone's depth maps and
+# thumbnails are not decoded). The decoder applies the file's own rotation and mirroring, so
+# the image it gives is upright and its EXIF orientation reads 1 (the one written is kept in
+# ``info["original_orientation"]``; :func:`_as_written`).
+pillow_heif.register_heif_opener(thumbnails=False, depth_images=False, aux_images=False)
+
+FORMATS = "JPEG, PNG, HEIC/HEIF, AVIF, WebP, TIFF, BMP, GIF"
+"""The photo formats read, as messages name them."""
 
 
 @contextmanager
@@ -41,7 +54,7 @@ def _opened(data: bytes, max_pixels: int) -> Iterator[Image.Image]:
     except UnidentifiedImageError:
         # PIL's message names its in-memory buffer (an address), which tells a client nothing.
         raise PhotoError("not a readable image: its bytes are in no image format the reader knows "
-                         "(JPEG, PNG, WebP, TIFF, BMP, GIF, ...)") from None
+                         f"({FORMATS})") from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise PhotoError(f"image data is damaged or truncated: {exc}") from None
 
@@ -64,9 +77,9 @@ def decode_photo(data: bytes, *, max_pixels: int = MAX_PIXELS, reduce_to: int | 
             img.draft(img.mode, (max(1, int(np.ceil(img.width * k))), max(1, int(np.ceil(img.height * k)))))
         img.load()
     img = ImageOps.exif_transpose(img)
-    if img.mode in ("I;16", "I;16B", "I;16L", "I"):
-        arr = np.asarray(img, dtype=np.float64)
-        top = max(float(arr.max()), 1.0)
+    if img.mode in ("I;16", "I;16B", "I;16L", "I", "F"):  # 16- and 32-bit integers, 32-bit floats (a TIFF)
+        arr = np.nan_to_num(np.asarray(img, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+        top = max(float(arr.max()), 1.0 if img.mode != "F" else 1e-12)
         img = Image.fromarray(np.clip(arr / top * 255.0, 0, 255).astype(np.uint8), "L")
     if img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info):
         rgba = img.convert("RGBA")
@@ -83,17 +96,31 @@ def _quarter_turned(exif: Image.Exif) -> bool:
     return exif.get(0x0112, 1) in (5, 6, 7, 8)
 
 
+def _as_written(img: Image.Image) -> tuple[int, int, bool]:
+    """The width and height of the image as the camera wrote it (before any orientation), and
+    whether the photo as seen is that image turned by a quarter.
+
+    A JPEG (or AVIF, TIFF, ...) is stored as written and its EXIF orientation turns it. A HEIF
+    decoder has already turned it by the file's own transforms and reset the EXIF orientation
+    to 1, keeping the one written as ``info["original_orientation"]``: its size is then the
+    photo as seen, and the camera's was that size turned back."""
+    original = img.info.get("original_orientation")
+    if original is not None:
+        turned = original in (5, 6, 7, 8)
+        return (img.height, img.width, True) if turned else (img.width, img.height, False)
+    return img.width, img.height, _quarter_turned(img.getexif())
+
+
 def verify_photo(data: bytes, *, max_pixels: int = MAX_PIXELS) -> tuple[int, int]:
     """Width and height (EXIF orientation applied) of a photo :func:`decode_photo` would accept,
     found without building its RGB array: a JPEG is decoded at an eighth of its size (every
     byte of the stream is still read, so a truncated or damaged one fails), other formats once
     in their own mode. Raises what :func:`decode_photo` raises."""
     with _opened(data, max_pixels) as img:
-        width, height = img.width, img.height
+        width, height, turned = _as_written(img)
         if img.format == "JPEG":
-            img.draft(img.mode, (max(1, width // 8), max(1, height // 8)))
+            img.draft(img.mode, (max(1, img.width // 8), max(1, img.height // 8)))
         img.load()
-        turned = _quarter_turned(img.getexif())
     if turned:  # the photo's sides swap
         width, height = height, width
     if width < 8 or height < 8:
@@ -185,9 +212,8 @@ def read_focal(data: bytes, *, max_pixels: int = MAX_PIXELS) -> ExifFocal:
     :func:`decode_photo` raises for data that is not a photo.
     """
     with _opened(data, max_pixels) as img:
-        width, height = img.width, img.height
+        width, height, turned = _as_written(img)
         exif = img.getexif()
-    turned = _quarter_turned(exif)
     tags = exif.get_ifd(ExifTags.IFD.Exif)
     focal_mm = _number(tags.get(_FOCAL_LENGTH))
     written = _number(tags.get(_FOCAL_35MM))

@@ -6,18 +6,23 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
+import pillow_heif
 import pytest
 from PIL import ExifTags, Image
 from playwright.sync_api import sync_playwright
 
+from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.parts import COLOURS
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
-from helpers import perturbed, view
-from service_stack import encode, wait_for
+from helpers import perturbed, projection_error, view
+from service_stack import encode, submit, wait_for
 
 pytestmark = pytest.mark.slow
 
+
+pillow_heif.register_heif_opener()  # to write the phone's HEIC below
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 
@@ -103,3 +108,36 @@ def test_admin_page_lists_and_opens_a_finished_job(service, browser, sedan, rend
     for name in ("admin-list.png", "admin-detail.png"):
         assert (tmp_path / name).stat().st_size > 10_000
     print(f"admin page screenshots: {tmp_path}")
+
+
+def test_a_phone_s_heic_is_registered_and_shown_upright(service, browser, sedan, renderer):
+    # An iPhone's photo: HEIC, stored as the sensor wrote it (a quarter turn from upright) with
+    # the turn in the file, and the lens's 35 mm equivalent in its EXIF.
+    truth = view(sedan, 60.0, 15.0, width=320, height=240, focal=480.0)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["top"], renderer=renderer, seed=23)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # shown turned a quarter clockwise
+    exif.get_ifd(ExifTags.IFD.Exif)[0xA405] = 52  # 480 pixels of a 400-pixel diagonal, 35 mm equivalent
+    heic = encode(np.ascontiguousarray(np.rot90(photo, 1)), "HEIF", quality=95, exif=exif.tobytes())
+    assert heic[4:12] == b"ftypheic"
+    with service.client() as c:
+        job = submit(c, heic, start=perturbed(truth, 23, degrees=4.0), filename="IMG_0001.HEIC").json()
+        body = wait_for(c, job["id"])
+        assert body["status"] == "succeeded", body
+        assert (body["photo"]["width"], body["photo"]["height"]) == (320, 240)
+        assert projection_error(sedan, Camera.from_dict(body["result"]["camera"]), truth) < 3.0
+        assert body["result"]["focal"]["exif"]["equivalent_mm"] == pytest.approx(52.0)
+        stored = c.get(body["links"]["photo"])
+        assert stored.headers["content-type"] == "image/heic" and stored.content == heic
+
+    context = browser.new_context(http_credentials={"username": "admin", "password": service.keys["admin"]})
+    page = context.new_page()
+    assert page.goto(f"{service.url}/admin/registrations/{job['id']}").status == 200
+    shown = page.locator("#photo")
+    shown.wait_for()
+    # A browser shows no HEIC: the page shows the photo as a JPEG, upright.
+    assert shown.get_attribute("src").endswith("/photo.jpg")
+    page.wait_for_function("img => img.complete", arg=shown.element_handle())
+    assert page.evaluate("img => [img.naturalWidth, img.naturalHeight]", shown.element_handle()) == [320, 240]
+    assert "image/heic" in page.locator("dl.facts").inner_text()
+    context.close()

@@ -17,6 +17,12 @@ from app.uploads import sniff_image
         (b"RIFF\x00\x00\x00\x00WEBPVP8 ", "image/webp"),
         (b"II*\x00\x08\x00\x00\x00", "image/tiff"),
         (b"BM\x00\x00", "image/bmp"),
+        (b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic", "image/heic"),  # an iPhone's
+        (b"\x00\x00\x00\x18ftypmif1\x00\x00\x00\x00mif1heic", "image/heic"),
+        (b"\x00\x00\x00\x14ftypmif1\x00\x00\x00\x00mif1", "image/heif"),
+        (b"\x00\x00\x00\x20ftypavif\x00\x00\x00\x00avifmif1miafMA1B", "image/avif"),
+        (b"\x00\x00\x00\x18ftypmif1\x00\x00\x00\x00mif1avif", "image/avif"),
+        (b"\x00\x00\x00\x18ftypisom\x00\x00\x02\x00isomiso2", None),  # an MP4 video
         (b"RIFF\x00\x00\x00\x00WAVEfmt ", None),
         (b"GIF89a", None),
         (b"<html>", None),

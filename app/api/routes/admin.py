@@ -12,9 +12,9 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy import func, select
 
-from app.api.deps import AdminClient, SessionDep
+from app.api.deps import AdminClient, SessionDep, SettingsDep
 from app.problems import Problem
-from app.registrations import stored_response, visible_job
+from app.registrations import BROWSER_TYPES, stored_response, viewable_photo, visible_job
 from core.library import get_library
 from core.models import Client, JobStatus, Registration
 from vehicle_pose.model.parts import COLOURS
@@ -74,7 +74,10 @@ def detail(request: Request, job_id: str, admin: AdminClient, session: SessionDe
     pose = json.dumps(job.result, indent=2) if job.result else None
     parts = [dict(p, colour="#{:02x}{:02x}{:02x}".format(*COLOURS.get(p["part"], (0, 0, 0))))
              for p in (job.result or {}).get("parts", [])]
-    return templates.TemplateResponse(request, "admin_detail.html", {"job": job, "pose": pose, "parts": parts})
+    # A photo in a type the browser does not show (a phone's HEIC, a TIFF) is shown as a JPEG.
+    shown = "photo" if job.photo_media_type in BROWSER_TYPES else "photo.jpg"
+    return templates.TemplateResponse(request, "admin_detail.html",
+                                      {"job": job, "pose": pose, "parts": parts, "photo_view": shown})
 
 
 @router.get("/registrations/{job_id}/thumbnail.jpg")
@@ -96,3 +99,9 @@ def parts(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
 def photo(job_id: str, admin: AdminClient, session: SessionDep) -> Response:
     job = visible_job(session, admin, job_id)
     return stored_response(job.photo_key, job.photo_media_type, "photo")
+
+
+@router.get("/registrations/{job_id}/photo.jpg")
+def photo_jpeg(job_id: str, admin: AdminClient, session: SessionDep, settings: SettingsDep) -> Response:
+    """The photo as a JPEG a browser shows (upright, at most 1600 pixels), whatever its type."""
+    return viewable_photo(visible_job(session, admin, job_id), settings)

@@ -59,7 +59,7 @@ def submit(
     client: CurrentClient,
     session: SessionDep,
     settings: SettingsDep,
-    photo: Annotated[UploadFile, File(description="the vehicle photo (JPEG, PNG, WebP, TIFF or BMP)")],
+    photo: Annotated[UploadFile, File(description="the vehicle photo (JPEG, PNG, HEIC/HEIF, AVIF, WebP, TIFF or BMP)")],
     model_id: Annotated[
         str,
         Form(description="id of a model from GET /v1/models; a,b,c to identify the model among these; "
