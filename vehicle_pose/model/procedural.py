@@ -8,8 +8,8 @@ labelled by the panel or window it was built as (:func:`construction_parts`), wr
 the model as ``parts.json`` (the body stays one surface: panels split apart would shade their
 seams apart). The loft has a station at every seam across the car (:func:`_stations`) and each
 of its quads is labelled whole, so that a panel's edge runs along the mesh's edges instead of
-zigzagging through the triangles it crosses. After the models are written anew, so is the
-sample photo of the sedan: ``python -m vehicle_pose.render.sample examples``.
+zigzagging through the triangles it crosses. ``examples/make_sample.py`` renders the sample
+photo from the shipped sedan.
 
 Run ``python -m vehicle_pose.model.procedural DIR`` to (re)write the shipped models into DIR.
 """
