@@ -6,10 +6,7 @@ glass part. Axes: forward +x, left +y, up +z, metres, ground at z = 0. The wheel
 generated car is exact, and so are its part labels: every face of the body and the glass is
 labelled by the panel or window it was built as (:func:`construction_parts`), written beside
 the model as ``parts.json`` (the body stays one surface: panels split apart would shade their
-seams apart). The loft has a station at every seam across the car (:func:`_stations`) and each
-of its quads is labelled whole, so that a panel's edge runs along the mesh's edges instead of
-zigzagging through the triangles it crosses. ``examples/make_sample.py`` renders the sample
-photo from the shipped sedan.
+seams apart).
 
 Run ``python -m vehicle_pose.model.procedural DIR`` to (re)write the shipped models into DIR.
 """
@@ -178,39 +175,9 @@ class _Loft:
     cap: npt.NDArray[np.bool_]
 
 
-def _seams(spec: CarSpec) -> dict[str, float]:
-    """The lengths (x) at which :func:`construction_parts` divides the body and the glass into
-    panels and windows: the fenders' and quarters' edges around the arches, the doors' split,
-    the greenhouse's and the roof's ends, the bumpers' ends."""
-    half = spec.length / 2
-    xf, xr = spec.wheelbase / 2, -spec.wheelbase / 2
-    arch = spec.wheel_radius + 0.06 + 0.2  # the arch's cut-out and the panel's lip around it
-    rear_roof, front_roof = _plateau(spec)
-    return {"fender": xf - arch, "quarter": xr + arch, "split": 0.5 * ((xr + arch) + (xf - arch)),
-            "glass_rear": spec.glass_x[0], "glass_front": spec.glass_x[1], "roof_rear": rear_roof,
-            "roof_front": front_roof, "front_bumper": half - 0.45, "rear_bumper": -half + 0.45}
-
-
-def _stations(spec: CarSpec) -> npt.NDArray[np.float64]:
-    """The loft's stations, front to back: ``spec.stations`` evenly spaced, and one at every
-    seam (:func:`_seams`) in place of the even one nearest it, so that every panel's and window's
-    edge across the car runs along a station."""
-    half = spec.length / 2
-    xs = np.linspace(half, -half, spec.stations)
-    step = spec.length / (spec.stations - 1)
-    for x in _seams(spec).values():
-        if -half < x < half:
-            k = int(np.argmin(np.abs(xs - x)))
-            if abs(xs[k] - x) < 0.5 * step and 0 < k < len(xs) - 1:
-                xs[k] = x
-            else:
-                xs = np.append(xs, x)
-    return np.unique(xs)[::-1]
-
-
 def _loft(spec: CarSpec) -> _Loft:
     half = spec.length / 2
-    xs = _stations(spec)
+    xs = np.linspace(half, -half, spec.stations)
     bottom, top = _profile(spec, xs)
     ang = np.linspace(0.0, 2 * np.pi, spec.ring, endpoint=False)
     cy = np.sign(np.cos(ang)) * np.abs(np.cos(ang)) ** 0.5
@@ -225,7 +192,7 @@ def _loft(spec: CarSpec) -> _Loft:
         y = hw * end * cy * (1.0 - spec.roof_inset * taper)
         verts.append(np.column_stack([np.full(spec.ring, x), y, z]))
     v = np.concatenate(verts)
-    n, r = len(xs), spec.ring
+    n, r = spec.stations, spec.ring
     faces = []
     for i in range(n - 1):
         for j in range(r):
@@ -240,18 +207,9 @@ def _loft(spec: CarSpec) -> _Loft:
         last = (n - 1) * r
         faces.append((rear_c, last + j, last + (j + 1) % r))
     tris = np.array(faces)
-    # Each quad's two triangles are placed by the quad's centre (the caps by their own
-    # centroid): a seam at a station or a height then runs along the quads' edges, not
-    # through every quad it crosses, which would give its two triangles to its two sides.
     cent = v[tris].mean(1)
-    quads = 2 * (n - 1) * r
-    corners = np.stack([tris[0:quads:2, 0], tris[0:quads:2, 1], tris[0:quads:2, 2], tris[1:quads:2, 2]], axis=1)
-    cent[:quads] = np.repeat(v[corners].mean(1), 2, axis=0)
-    # A quad's place around the cross-section: the sine of the angle half-way along its ring
-    # edge, for both its triangles (so that the top's and the roof's edges run along the quads').
-    seg = np.sin(ang + np.pi / r)
+    seg = np.array([np.sin(ang[j]) for j in range(r)])
     ring_j = np.where(tris[:, 0] < n * r, tris[:, 0] % r, 0)
-    ring_j[:quads] = np.repeat(corners[:, 0] % r, 2)
     roofish = seg[ring_j] > 0.93
     glass = (
         (cent[:, 0] > spec.glass_x[0])
@@ -287,13 +245,16 @@ def construction_parts(spec: CarSpec) -> dict[str, list[str]]:
     surface."""
     loft = _loft(spec)
     x, y, z = loft.centroids[:, 0], loft.centroids[:, 1], loft.centroids[:, 2]
+    half = spec.length / 2
     side = np.where(y >= 0, "left", "right")
-    seams = _seams(spec)
-    rear_roof, front_roof, split = seams["roof_rear"], seams["roof_front"], seams["split"]
+    rear_roof, front_roof = _plateau(spec)
+    xf, xr = spec.wheelbase / 2, -spec.wheelbase / 2
+    arch = spec.wheel_radius + 0.06 + 0.2  # the arch's cut-out and the panel's lip around it
+    split = 0.5 * ((xr + arch) + (xf - arch))
     out = np.array([f"front_door_{s}" for s in side], dtype=object)
     out[x < split] = [f"rear_door_{s}" for s in side[x < split]]
-    out[x >= seams["fender"]] = [f"front_fender_{s}" for s in side[x >= seams["fender"]]]
-    out[x <= seams["quarter"]] = [f"rear_quarter_{s}" for s in side[x <= seams["quarter"]]]
+    out[x >= xf - arch] = [f"front_fender_{s}" for s in side[x >= xf - arch]]
+    out[x <= xr + arch] = [f"rear_quarter_{s}" for s in side[x <= xr + arch]]
     top = loft.rise > 0.5
     out[top & (x > spec.glass_x[1])] = "hood"
     out[top & (x < spec.glass_x[0])] = "trunk"
@@ -305,14 +266,14 @@ def construction_parts(spec: CarSpec) -> dict[str, list[str]]:
     # The ends, where the loft's floor rises: the bumpers up to the profile's first and last
     # heights; above them the end caps are the hood's nose and the trunk's (or tailgate's) back.
     front_top, rear_top = spec.top[0][1], spec.top[-1][1]
-    out[(x > seams["front_bumper"]) & ~top & (z < front_top)] = "front_bumper"
-    out[(x < seams["rear_bumper"]) & ~top & (z < rear_top)] = "rear_bumper"
+    out[(x > half - 0.45) & ~top & (z < front_top)] = "front_bumper"
+    out[(x < -half + 0.45) & ~top & (z < rear_top)] = "rear_bumper"
     cap = loft.cap
     out[cap & (x > 0)] = np.where(z[cap & (x > 0)] < front_top, "front_bumper", "hood")
     out[cap & (x < 0)] = np.where(z[cap & (x < 0)] < rear_top, "rear_bumper", "trunk")
     windows = np.array([f"quarter_window_{s}" for s in side], dtype=object)
     windows[x >= split] = [f"front_door_window_{s}" for s in side[x >= split]]
-    middle = (x < split) & (x >= seams["quarter"])
+    middle = (x < split) & (x >= xr + arch)
     windows[middle] = [f"rear_door_window_{s}" for s in side[middle]]
     windows[x > front_roof] = "windscreen"
     windows[x < rear_roof] = "rear_window"
