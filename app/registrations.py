@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import threading
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
-from PIL import Image
 from pydantic import ValidationError
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
@@ -32,7 +31,8 @@ from vehicle_pose import (
 )
 from vehicle_pose.errors import UnknownModelError
 from vehicle_pose.model.library import AUTO
-from vehicle_pose.photo import decode_photo, resized, verify_photo
+from vehicle_pose.photo import decode_photo, resized_within, verify_photo
+from vehicle_pose.render.overlay import encode_image
 from vehicle_pose.search.views import parse_bbox
 
 
@@ -191,6 +191,9 @@ def visible_job(session: Session, client: Client, job_id: str) -> Registration:
     return job
 
 
+_CACHED = {"Cache-Control": "private, max-age=3600"}  # a stored object or a rendition of one
+
+
 def _stored(key: str | None, what: str) -> bytes:
     if key is None:
         raise Problem(404, "not-found", f"this registration has no {what} yet")
@@ -202,7 +205,7 @@ def _stored(key: str | None, what: str) -> bytes:
 
 def stored_response(key: str | None, media_type: str, what: str) -> Response:
     """The stored object under ``key`` as a response; 404 when there is none (yet, or any more)."""
-    return Response(_stored(key, what), media_type=media_type, headers={"Cache-Control": "private, max-age=3600"})
+    return Response(_stored(key, what), media_type=media_type, headers=_CACHED)
 
 
 BROWSER_TYPES = frozenset(("image/jpeg", "image/png", "image/webp", "image/avif", "image/bmp"))
@@ -222,12 +225,8 @@ def viewable_photo(job: Registration, settings: Settings) -> Response:
             rgb = decode_photo(data, max_pixels=settings.max_photo_pixels, reduce_to=VIEW_SIZE)
     except PhotoError as exc:  # it was verified on upload: only a damaged store gets here
         raise Problem(422, exc.code, str(exc)) from None
-    scale = VIEW_SIZE / max(rgb.shape[:2])
-    if scale < 1.0:
-        rgb = resized(rgb, max(1, round(rgb.shape[1] * scale)), max(1, round(rgb.shape[0] * scale)))
-    out = io.BytesIO()
-    Image.fromarray(rgb).save(out, format="JPEG", quality=90)
-    return Response(out.getvalue(), media_type="image/jpeg", headers={"Cache-Control": "private, max-age=3600"})
+    jpeg = encode_image(resized_within(rgb, VIEW_SIZE), ".jpg", [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return Response(jpeg, media_type="image/jpeg", headers=_CACHED)
 
 
 def links(job: Registration) -> Links:

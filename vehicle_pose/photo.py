@@ -21,7 +21,7 @@ from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 from vehicle_pose.errors import PhotoError, PhotoTooLargeError
 
 __all__ = ["load_photo", "load_photo_focal", "decode_photo", "verify_photo", "read_focal", "ExifFocal", "is_gray",
-           "resized", "resized_mask", "MAX_PIXELS", "EQUIVALENT_RANGE", "FULL_FRAME_DIAGONAL"]
+           "resized", "resized_within", "resized_mask", "MAX_PIXELS", "EQUIVALENT_RANGE", "FULL_FRAME_DIAGONAL"]
 
 MAX_PIXELS = 50_000_000
 
@@ -260,6 +260,16 @@ def resized(rgb: npt.NDArray[np.uint8], width: int, height: int) -> npt.NDArray[
 
     out: npt.NDArray[np.uint8] = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
     return out
+
+
+def resized_within(rgb: npt.NDArray[np.uint8], max_size: int) -> npt.NDArray[np.uint8]:
+    """The photo (H, W, 3) reduced to at most ``max_size`` pixels on its longer side; itself when
+    it is no larger."""
+    h, w = rgb.shape[:2]
+    s = max_size / max(h, w)
+    if s >= 1.0:
+        return rgb
+    return resized(rgb, max(1, round(w * s)), max(1, round(h * s)))
 
 
 def resized_mask(mask: npt.NDArray[np.bool_], width: int, height: int) -> npt.NDArray[np.bool_]:

@@ -37,7 +37,7 @@ from vehicle_pose import (
     decode_photo,
 )
 from vehicle_pose.errors import OutOfTime, RenderError
-from vehicle_pose.photo import read_focal, resized
+from vehicle_pose.photo import read_focal, resized, resized_within
 from vehicle_pose.registration.identify import register_or_identify
 from vehicle_pose.render.overlay import draw_overlay, encode_image
 
@@ -63,11 +63,7 @@ def thumbnail(rgb: npt.NDArray[np.uint8], width: int = THUMBNAIL_WIDTH) -> bytes
 
 def overlay_base(rgb: npt.NDArray[np.uint8], max_size: int = OVERLAY_MAX_SIZE) -> npt.NDArray[np.uint8]:
     """The photo the overlay is drawn on: ``rgb`` reduced to at most ``max_size`` on its longer side."""
-    h, w = rgb.shape[:2]
-    s = max_size / max(h, w)
-    if s >= 1.0:
-        return rgb
-    return resized(rgb, max(1, round(w * s)), max(1, round(h * s)))
+    return resized_within(rgb, max_size)
 
 
 def fail_job(job_id: str, error_type: str, detail: str, result: dict[str, Any] | None = None) -> None:
