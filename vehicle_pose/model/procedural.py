@@ -163,16 +163,22 @@ def _profile(spec: CarSpec, x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.
 
 @dataclass(frozen=True)
 class _Loft:
-    """The body's loft: vertices, triangles, their centroids, each triangle's place around the
-    cross-section (``rise``: the sine, 1 on top, -1 underneath), the greenhouse's side faces
-    (``glass``) and the end caps (``cap``)."""
+    """The body's loft: vertices, triangles, the greenhouse's side faces (``glass``), the end
+    caps (``cap``), and where each triangle's panel is judged: ``panel_at``, the centre of the
+    quad it belongs to, ``panel_rise``, that quad's place around the cross-section (the sine
+    half-way along its ring edge: 1 on top, -1 underneath), and ``panel_normal``, the quad's
+    normal (the cross product of its diagonals; its sign is not kept); a cap's triangle keeps
+    its own centroid, its first vertex's sine and its own normal. Both triangles of a quad so go
+    to one panel, and a panel's edge runs along the quads' edges instead of zigzagging through
+    every quad a seam crosses."""
 
     vertices: npt.NDArray[np.float64]
     tris: npt.NDArray[np.int64]
-    centroids: npt.NDArray[np.float64]
-    rise: npt.NDArray[np.float64]
     glass: npt.NDArray[np.bool_]
     cap: npt.NDArray[np.bool_]
+    panel_at: npt.NDArray[np.float64]
+    panel_rise: npt.NDArray[np.float64]
+    panel_normal: npt.NDArray[np.float64]
 
 
 def _loft(spec: CarSpec) -> _Loft:
@@ -218,7 +224,16 @@ def _loft(spec: CarSpec) -> _Loft:
         & ~roofish
         & (tris[:, 0] < n * r)
     )
-    return _Loft(v, tris, cent, seg[ring_j], glass, tris[:, 0] >= n * r)
+    quads = 2 * (n - 1) * r  # the loft's quads come first, two triangles each: (a, c, b), (b, c, d)
+    corners = np.column_stack([tris[0:quads:2], tris[1:quads:2, 2]])
+    panel_at = cent.copy()
+    panel_at[:quads] = np.repeat(v[corners].mean(1), 2, axis=0)
+    panel_rise = seg[ring_j].copy()
+    panel_rise[:quads] = np.repeat(np.sin(ang[corners[:, 0] % r] + np.pi / r), 2)
+    panel_normal = np.cross(v[tris[:, 1]] - v[tris[:, 0]], v[tris[:, 2]] - v[tris[:, 0]])
+    diagonals = np.cross(v[corners[:, 3]] - v[corners[:, 0]], v[corners[:, 2]] - v[corners[:, 1]])
+    panel_normal[:quads] = np.repeat(diagonals, 2, axis=0)
+    return _Loft(v, tris, glass, tris[:, 0] >= n * r, panel_at, panel_rise, panel_normal)
 
 
 def _body_and_glass(spec: CarSpec) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
@@ -244,7 +259,7 @@ def construction_parts(spec: CarSpec) -> dict[str, list[str]]:
     own measures (its wheelbase, arches, greenhouse, belt and profile), not from the finished
     surface."""
     loft = _loft(spec)
-    x, y, z = loft.centroids[:, 0], loft.centroids[:, 1], loft.centroids[:, 2]
+    x, y, z = loft.panel_at[:, 0], loft.panel_at[:, 1], loft.panel_at[:, 2]
     half = spec.length / 2
     side = np.where(y >= 0, "left", "right")
     rear_roof, front_roof = _plateau(spec)
@@ -255,7 +270,7 @@ def construction_parts(spec: CarSpec) -> dict[str, list[str]]:
     out[x < split] = [f"rear_door_{s}" for s in side[x < split]]
     out[x >= xf - arch] = [f"front_fender_{s}" for s in side[x >= xf - arch]]
     out[x <= xr + arch] = [f"rear_quarter_{s}" for s in side[x <= xr + arch]]
-    top = loft.rise > 0.5
+    top = loft.panel_rise > 0.5
     out[top & (x > spec.glass_x[1])] = "hood"
     out[top & (x < spec.glass_x[0])] = "trunk"
     out[top & (x >= spec.glass_x[0]) & (x <= spec.glass_x[1])] = "roof"
@@ -275,8 +290,12 @@ def construction_parts(spec: CarSpec) -> dict[str, list[str]]:
     windows[x >= split] = [f"front_door_window_{s}" for s in side[x >= split]]
     middle = (x < split) & (x >= xr + arch)
     windows[middle] = [f"rear_door_window_{s}" for s in side[middle]]
-    windows[x > front_roof] = "windscreen"
-    windows[x < rear_roof] = "rear_window"
+    # Ahead of the roof and behind it, the glass that faces forward or back is the windscreen
+    # and the rear window; the side glass there is the window of the door (or the quarter) it
+    # stands over, as on a real car.
+    ends = np.abs(loft.panel_normal[:, 0]) > np.abs(loft.panel_normal[:, 1])
+    windows[ends & (x > front_roof)] = "windscreen"
+    windows[ends & (x < rear_roof)] = "rear_window"
     return {"body": [str(k) for k in out[~loft.glass]], "glass": [str(k) for k in windows[loft.glass]]}
 
 
