@@ -43,6 +43,10 @@ Progress = Callable[[str, int, float], None]
 """``progress(stage, evaluations, loss)``, called every 20 evaluations and after each level."""
 
 _INVALID = 10.0  # the objective of coordinates that give no camera
+# How far a phone's EXIF focal length is from the lens's, as a log: the 35 mm equivalent's
+# width and diagonal conventions 4 % apart on a 4:3 sensor, then rounded to a millimetre (2 % at
+# 24 mm); the scale of the prior of ``FitPlan.focal_prior``.
+EXIF_SPREAD = 0.03
 
 
 class _Screened(Exception):
@@ -62,7 +66,9 @@ class FitPlan:
     above which the fit ends after its first level, where the shading does not explain the
     photo even coarsely and the caller has another way to the pose, None to run every level;
     ``screen_after``: with a screen, the first level's evaluations after which a pose still
-    above it ends the fit there (0: only at the level's end).
+    above it ends the fit there (0: only at the level's end); ``focal_prior``: with a band, the
+    weight of the band's middle as a prior in one more run of the last level with the focal
+    length free (``exif_refine``), kept where its objective is lower (0: none).
     """
 
     coarse_to_fine: bool
@@ -74,6 +80,7 @@ class FitPlan:
     screen: float | None = None
     spread: int = 0
     screen_after: int = 0
+    focal_prior: float = 0.0
 
     @classmethod
     def hinted(cls, options: RegistrationOptions, screen: float | None = None) -> FitPlan:
@@ -234,9 +241,11 @@ def fit(
         screening = li == 0 and plan.screen is not None and plan.screen_after > 0
         lowest: list[tuple[float, float, Camera]] = []
 
-        def search(reference: Camera, budget: int,
-                   how: Optimizer = optimizer) -> tuple[OptimizeResult, Parametrization]:
-            params = make_parametrization(options.parametrization, reference.scaled(w, h), frame)
+        def search(reference: Camera, budget: int, how: Optimizer = optimizer,
+                   lens: float | None = None) -> tuple[OptimizeResult, Parametrization]:
+            # ``lens`` (image widths): the focal length free, priced by the prior about it.
+            within = frame if lens is None else replace(frame, focal_band=None)
+            params = make_parametrization(options.parametrization, reference.scaled(w, h), within)
             try:
                 x0 = params.start()
             except PoseError:
@@ -251,6 +260,8 @@ def fit(
             def score(cam: Camera, rendered: Frame) -> float:
                 shading = float(loss_fn(rendered))
                 value = shading
+                if lens is not None:
+                    value += plan.focal_prior * float(np.log(cam.focal / (lens * cam.width)) / EXIF_SPREAD) ** 2
                 if edge_fn is not None:
                     value += plan.edge_weight * edge_fn(rendered)
                 if level_box is not None and box_points is not None:
@@ -320,6 +331,13 @@ def fit(
             if best_probe[0].fun < runs[0][0].fun * (1.0 + options.probes.probe_margin):
                 runs.append(search(best_probe[1].camera(best_probe[0].x).scaled(Wf, Hf),
                                    plan.evaluations - budgets.focal_evaluations))
+        if li == len(sizes) - 1 and plan.focal_band is not None and plan.focal_prior > 0:
+            # The focal length held at the EXIF's is a phone's rounding and convention off (2 %
+            # at the median); where the shading pins it closer, a last run with it free finds
+            # it, the EXIF's prior keeping it from walking the focal-depth valley.
+            held, held_params = min(runs, key=lambda e: e[0].fun)
+            runs.append(search(held_params.camera(held.x).scaled(Wf, Hf), budget,
+                               lens=float(np.sqrt(plan.focal_band[0] * plan.focal_band[1]))))
         res, params = min(runs, key=lambda e: e[0].fun)
         if li == 0 and len(runs) > 1:
             other, other_params = max(runs, key=lambda e: e[0].fun)
@@ -329,7 +347,7 @@ def fit(
                           restarts=sum(r.restarts for r, _ in runs))
         camera = params.camera(res.x).scaled(Wf, Hf)
         loss = res.fun
-        if edge_fn is not None or level_box is not None:
+        if edge_fn is not None or level_box is not None or (plan.focal_band is not None and plan.focal_prior > 0):
             loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t,
                                   res.fun))

@@ -394,6 +394,10 @@ class Search(_Group):
                               flag="--no-exif-focal")
     exif_tolerance: float = option(1.0, "factor either way from the EXIF focal length that the search may reach "
                                    "(1: held at it; docs/decisions/0021-exif-focal.md)", low=1.0, high=10.0)
+    exif_refine: float = option(0.0003, "weight of the EXIF focal length's prior in a last run of the shading "
+                                "polish with the focal length free, per (log of the focal length over the EXIF's "
+                                "/ 0.03) squared (0: no such run, the focal length held; decision 0048)",
+                                low=0.0, high=1.0)
 
 
 _GROUPS: dict[str, type[Any]] = {

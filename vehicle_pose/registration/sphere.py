@@ -557,7 +557,7 @@ def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereS
         return None
     plan = FitPlan(options.pyramid.coarse_to_fine, st.polish_evaluations,
                    options.segmentation.grabcut and options.segmentation.resegment, options.terms.edge_weight,
-                   focal_band=focal_band)
+                   focal_band=focal_band, focal_prior=options.search.exif_refine)
 
     def polish(pose: Pose) -> Fit:
         # The polish's levels are not offered to the deadline: its pose stands only if credible.
