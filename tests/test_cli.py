@@ -114,6 +114,24 @@ def test_cli_reads_the_exif_focal_length_and_warns_of_one_that_cannot_be(tmp_pat
             assert result["focal"]["exif"]["pixels"] == pytest.approx(40 / 43.2666 * 1000, rel=1e-3)
 
 
+@pytest.mark.slow
+def test_cli_without_a_start_camera_holds_the_exif_focal_length_and_says_so(tmp_path):
+    from PIL import ExifTags
+
+    with Image.open(ROOT / "examples" / "sedan.jpg") as img:
+        pixels = img.copy()
+    exif = Image.Exif()
+    exif.get_ifd(ExifTags.IFD.Exif)[0xA405] = 40
+    photo, out = tmp_path / "phone.jpg", tmp_path / "r.json"
+    pixels.save(photo, "JPEG", quality=95, exif=exif.tobytes())
+    proc = _cli("register", str(photo), "--model", "sedan", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    focal = json.loads(out.read_text())["focal"]
+    assert focal["source"] == "exif"
+    said = f"focal length {focal['pixels']:.0f} px (the EXIF's {focal['exif']['pixels']:.0f} px)"
+    assert said in proc.stdout, proc.stdout
+
+
 @pytest.mark.parametrize(
     "args,message",
     [

@@ -190,8 +190,12 @@ def _register(args: argparse.Namespace) -> int:
     for warning in result.warnings:
         print(f"vehicle-pose: warning: {warning}", file=sys.stderr)
     conf = "" if result.confidence is None else f", confidence {result.confidence:.2f}"
+    focal = result.focal
+    lens = ""
+    if focal.get("source") == "exif" and focal.get("exif"):
+        lens = f", focal length {focal['pixels']:.0f} px (the EXIF's {focal['exif']['pixels']:.0f} px)"
     print(
-        f"registered {model.info.id}: loss {result.loss:.4f}{conf}, {result.evaluations} evaluations, "
+        f"registered {model.info.id}: loss {result.loss:.4f}{conf}{lens}, {result.evaluations} evaluations, "
         f"{result.seconds:.2f} s -> {out}"
     )
     if result.failed:
