@@ -90,6 +90,14 @@ class FitPlan:
                    options.terms.edge_weight, screen=screen, spread=options.budgets.spread_evaluations,
                    screen_after=options.structure.screen_after)
 
+    @property
+    def prior_lens(self) -> float | None:
+        """The focal length (image widths) the last level's free run is priced about: the band's
+        geometric middle, where the plan has a band and a ``focal_prior``; else None."""
+        if self.focal_band is None or self.focal_prior <= 0:
+            return None
+        return float(np.sqrt(self.focal_band[0] * self.focal_band[1]))
+
     def screens(self, loss: float, work: npt.NDArray[np.uint8], color: bool) -> bool:
         """Whether a first level ending at ``loss`` ends the fit (above the ``screen``)."""
         return self.screen is not None and loss_share(loss, work, color) > self.screen
@@ -331,13 +339,12 @@ def fit(
             if best_probe[0].fun < runs[0][0].fun * (1.0 + options.probes.probe_margin):
                 runs.append(search(best_probe[1].camera(best_probe[0].x).scaled(Wf, Hf),
                                    plan.evaluations - budgets.focal_evaluations))
-        if li == len(sizes) - 1 and plan.focal_band is not None and plan.focal_prior > 0:
+        if li == len(sizes) - 1 and plan.prior_lens is not None:
             # The focal length held at the EXIF's is a phone's rounding and convention off (2 %
             # at the median); where the shading pins it closer, a last run with it free finds
             # it, the EXIF's prior keeping it from walking the focal-depth valley.
             held, held_params = min(runs, key=lambda e: e[0].fun)
-            runs.append(search(held_params.camera(held.x).scaled(Wf, Hf), budget,
-                               lens=float(np.sqrt(plan.focal_band[0] * plan.focal_band[1]))))
+            runs.append(search(held_params.camera(held.x).scaled(Wf, Hf), budget, lens=plan.prior_lens))
         res, params = min(runs, key=lambda e: e[0].fun)
         if li == 0 and len(runs) > 1:
             other, other_params = max(runs, key=lambda e: e[0].fun)
@@ -347,7 +354,7 @@ def fit(
                           restarts=sum(r.restarts for r, _ in runs))
         camera = params.camera(res.x).scaled(Wf, Hf)
         loss = res.fun
-        if edge_fn is not None or level_box is not None or (plan.focal_band is not None and plan.focal_prior > 0):
+        if edge_fn is not None or level_box is not None or plan.prior_lens is not None:
             loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t,
                                   res.fun))
