@@ -101,6 +101,33 @@ def test_a_car_cut_by_the_frame_is_a_template_cut_by_the_frame(sedan, renderer, 
     assert abs(placed.focal[best, 0] / 300.0 - 1.0) < 0.12
 
 
+def test_a_placement_costs_the_mean_truncated_distance_at_its_points_in_view(sedan, renderer, templates):
+    """The compiled placement's cost, worked again here: each of the template's points turned
+    with the placed camera, projected, rounded to its pixel and read in its orientation's
+    distance map, truncated at tau; the mean over those in the frame (part of the car is beyond
+    the left border, so some are not)."""
+    photo, _ = _photo(sedan, renderer, 3, templates, 300.0, 40.0, 120.0)
+    edges = photo_edges(photo)
+    tau = 14.0
+    placed = match(templates, edges.distance, tau, [(0.0, 30.0, 200.0, 210.0)], scales=(0.8, 2.0))
+    costs = np.minimum(edges.distance, np.float32(tau)) / np.float32(tau)
+    _, H, W = costs.shape
+    cx, cy = (W - 1) / 2, (H - 1) / 2
+    checked = 0
+    for t in np.flatnonzero(np.isfinite(placed.cost[:, 0])):
+        f, u, v = placed.focal[t, 0], placed.u[t, 0], placed.v[t, 0]
+        first, last = templates.offsets[t], templates.offsets[t + 1]
+        rays = np.c_[templates.points[first:last].astype(np.float64), np.ones(last - first)]
+        turned = rays @ turn_to(np.array([(u - cx) / f, (v - cy) / f, 1.0])).T
+        x = np.floor(cx + f * turned[:, 0] / turned[:, 2] + 0.5).astype(int)
+        y = np.floor(cy + f * turned[:, 1] / turned[:, 2] + 0.5).astype(int)
+        inside = (x >= 0) & (y >= 0) & (x < W) & (y < H)
+        checked += int((~inside).any())
+        expected = costs[templates.bins[first:last][inside], y[inside], x[inside]].astype(np.float64).mean()
+        assert abs(placed.cost[t, 0] - expected) < 1e-9
+    assert checked > 0  # some best placements were cut by the frame
+
+
 def test_only_the_allowed_templates_are_tried(sedan, renderer, templates):
     photo, _ = _photo(sedan, renderer, 4, templates, 260.0, 160.0, 120.0)
     edges = photo_edges(photo)

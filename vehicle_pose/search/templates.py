@@ -209,53 +209,53 @@ class Placements:
 
 @njit(cache=True, nogil=True)
 def _turn(ray_x: float, ray_y: float) -> Any:  # pragma: no cover - compiled
-    """:func:`turn_to` of the ray ``(ray_x, ray_y, 1)``."""
+    """:func:`turn_to` of the ray ``(ray_x, ray_y, 1)``, its nine entries row by row (a tuple:
+    a placement allocates nothing)."""
     n = np.sqrt(ray_x * ray_x + ray_y * ray_y + 1.0)
     rx, ry, rz = ray_x / n, ray_y / n, 1.0 / n
     s = np.sqrt(rx * rx + ry * ry)
-    R = np.eye(3)
     if s < 1e-12:
-        return R
+        return 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
     kx, ky = -ry / s, rx / s
     c = rz
     # Rodrigues' formula about the axis (kx, ky, 0) by the angle whose sine is s, cosine rz.
-    R[0, 0] = c + kx * kx * (1.0 - c)
-    R[0, 1] = kx * ky * (1.0 - c)
-    R[0, 2] = ky * s
-    R[1, 0] = kx * ky * (1.0 - c)
-    R[1, 1] = c + ky * ky * (1.0 - c)
-    R[1, 2] = -kx * s
-    R[2, 0] = -ky * s
-    R[2, 1] = kx * s
-    R[2, 2] = c
-    return R
+    return (c + kx * kx * (1.0 - c), kx * ky * (1.0 - c), ky * s,
+            kx * ky * (1.0 - c), c + ky * ky * (1.0 - c), -kx * s,
+            -ky * s, kx * s, c)
 
 
 @njit(cache=True, nogil=True)
-def _score(points: Any, bins: Any, first: int, last: int, costs: Any, f: float, u: float, v: float, cx: float,
-           cy: float, min_seen: float) -> float:  # pragma: no cover - compiled
+def _score(xs: Any, ys: Any, planes: Any, first: int, last: int, costs: Any, H: int, W: int, f: float, u: float,
+           v: float, cx: float, cy: float, min_seen: float, at: Any) -> float:  # pragma: no cover - compiled
     """The mean cost of a template's points placed at focal length ``f`` with the centre's image
-    at ``(u, v)``, over those inside the frame; inf when fewer than ``min_seen`` are."""
-    _, H, W = costs.shape
+    at ``(u, v)``, over those inside the frame; inf when fewer than ``min_seen`` are. The points
+    are ``(xs, ys)`` (normalised coordinates), ``planes`` each one's orientation bin times
+    ``H * W``: its costs' offset in ``costs``, the ``H`` x ``W`` maps of every bin end to end.
+    ``at`` is scratch space for ``last - first`` indices."""
     # The placed camera turns the template's axis onto the ray through (u, v): each point's ray
     # turns with it (exact, off the axis too).
-    R = _turn((u - cx) / f, (v - cy) / f)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _turn((u - cx) / f, (v - cy) / f)
+    # First every point's cost index (-1 outside the frame or behind the camera), a loop without
+    # branches that the compiler runs several points at a time; then the costs summed in order.
+    n = last - first
+    for i in range(n):
+        px, py = xs[first + i], ys[first + i]
+        dz = r20 * px + r21 * py + r22
+        ahead = dz > 1e-6
+        dz = max(dz, 1e-6)
+        x = np.floor(cx + f * (r00 * px + r01 * py + r02) / dz + 0.5)
+        y = np.floor(cy + f * (r10 * px + r11 * py + r12) / dz + 0.5)
+        inside = ahead and x >= 0.0 and y >= 0.0 and x < W and y < H
+        at[i] = planes[first + i] + int(y) * W + int(x) if inside else -1
     acc = 0.0
     seen = 0
-    for p in range(first, last):
-        px, py = points[p, 0], points[p, 1]
-        dz = R[2, 0] * px + R[2, 1] * py + R[2, 2]
-        if dz <= 1e-6:
-            continue
-        x = int(np.floor(cx + f * (R[0, 0] * px + R[0, 1] * py + R[0, 2]) / dz + 0.5))
-        y = int(np.floor(cy + f * (R[1, 0] * px + R[1, 1] * py + R[1, 2]) / dz + 0.5))
-        if x >= 0 and y >= 0 and x < W and y < H:
-            acc += costs[bins[p], y, x]
+    for i in range(n):
+        if at[i] >= 0:
+            acc += costs[at[i]]
             seen += 1
-    if seen == 0 or seen < min_seen * (last - first):
+    if seen == 0 or seen < min_seen * n:
         return np.inf
     return acc / seen
-
 
 
 @njit(cache=True, nogil=True)
@@ -272,10 +272,9 @@ def _keep(best: Any, where: Any, t: int, k: int, c: float, f: float, u: float, v
     return False
 
 @njit(cache=True, parallel=True)
-def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs: Any, min_seen: float, targets: Any,
-           scales: Any, step: float, min_iou: float, cx: float, cy: float,
+def _match(xs: Any, ys: Any, planes: Any, offsets: Any, boxes: Any, allowed: Any, costs: Any, H: int, W: int,
+           min_seen: float, targets: Any, scales: Any, step: float, min_iou: float, cx: float, cy: float,
            stride: float) -> tuple[Any, Any]:  # pragma: no cover
-    n_bins, H, W = costs.shape
     T = offsets.size - 1
     B = targets.shape[0]
     best = np.full((T, B), np.inf)
@@ -287,6 +286,7 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
         first, last = offsets[t], offsets[t + 1]
         if last == first:
             continue
+        at = np.empty(last - first, np.int64)
         for k in range(B):
             tx0, ty0, tx1, ty1 = targets[k, 0], targets[k, 1], targets[k, 2], targets[k, 3]
             t_area = max(tx1 - tx0, 1.0) * max(ty1 - ty0, 1.0)
@@ -325,8 +325,8 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
                         inter = iw * ih
                         if inter / ((cx1 - cx0) * (cy1 - cy0) + t_area - inter) < min_iou:
                             continue
-                        if _keep(best, where, t, k, _score(points, bins, first, last, costs, f, u, v, cx, cy,
-                                                           min_seen), f, u, v):
+                        if _keep(best, where, t, k, _score(xs, ys, planes, first, last, costs, H, W, f, u, v,
+                                                           cx, cy, min_seen, at), f, u, v):
                             fine = st
             if not np.isfinite(best[t, k]):
                 continue
@@ -340,8 +340,8 @@ def _match(points: Any, bins: Any, offsets: Any, boxes: Any, allowed: Any, costs
                         if fs == 1.0 and du == 0.0 and dv == 0.0:
                             continue
                         f, u, v = f0 * fs, u0 + du * fine, v0 + dv * fine
-                        _keep(best, where, t, k, _score(points, bins, first, last, costs, f, u, v, cx, cy, min_seen),
-                              f, u, v)
+                        _keep(best, where, t, k, _score(xs, ys, planes, first, last, costs, H, W, f, u, v, cx, cy,
+                                                 min_seen, at), f, u, v)
     return best, where
 
 
@@ -387,13 +387,16 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
     """
     if not targets:
         raise ValueError("matching needs at least one target box")
-    costs = (np.minimum(distance, np.float32(tau)) / np.float32(tau)).astype(np.float32)
+    costs = (np.minimum(distance, np.float32(tau)) / np.float32(tau)).astype(np.float32).ravel()
     count = int(np.floor(np.log(scales[1] / scales[0]) / np.log(scale_step) + 1e-9)) + 1
     factors = scales[0] * scale_step ** np.arange(count)
     mask = np.ones(len(templates), np.bool_) if allowed is None else np.asarray(allowed, np.bool_)
     _, H, W = distance.shape
     cx, cy = principal if principal is not None else (0.5 * (W - 1), 0.5 * (H - 1))
     boxes = np.asarray(targets, np.float64)
+    xs = templates.points[:, 0].astype(np.float64)
+    ys = templates.points[:, 1].astype(np.float64)
+    planes = templates.bins.astype(np.int64) * (H * W)
     chosen = np.flatnonzero(mask)
     # With a caller to hear between, each target's templates are placed a share at a time (every
     # template is placed on its own, so the placements are the same): a share is every n-th
@@ -406,7 +409,7 @@ def match(templates: ViewTemplates, distance: npt.NDArray[np.float32], tau: floa
             share = chosen[i::n]
             part = np.zeros_like(mask)
             part[share] = True
-            b, w = _match(templates.points, templates.bins, templates.offsets, templates.boxes, part, costs,
+            b, w = _match(xs, ys, planes, templates.offsets, templates.boxes, part, costs, H, W,
                           float(min_seen), boxes[k:k + 1], factors, float(step),
                           float(min_iou), float(cx), float(cy), float(stride))
             best[share, k], where[share, k] = b[share, 0], w[share, 0]
