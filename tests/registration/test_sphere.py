@@ -11,7 +11,7 @@ import pytest
 
 from vehicle_pose import Camera, RegistrationOptions, register
 from vehicle_pose.clock import clocked
-from vehicle_pose.loss.edges import TwoWayChamfer
+from vehicle_pose.loss.edges import TwoWayChamfer, photo_edges
 from vehicle_pose.metrics import rotation_error
 from vehicle_pose.model.library import ModelLibrary, VehicleModel
 from vehicle_pose.model.procedural import CarSpec, build_car
@@ -19,6 +19,8 @@ from vehicle_pose.registration.sphere import (
     REGION_BORDERS,
     Pose,
     SphereSearch,
+    _Cost,
+    _in_frame,
     _regions,
     _seen_box,
     _vote,
@@ -163,6 +165,31 @@ def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(
     # and in the frame, not in the regions GrabCut finds without a hint.
     searched = {tuple(c["target"]) for c in result.candidates}
     assert searched <= {_seen_box(start, sedan, 4.0), (0.0, 0.0, W - 1.0, H - 1.0)}
+
+
+def test_a_start_that_shows_part_of_the_car_weighs_its_prior_more(sedan, renderer):
+    """The two-way chamfer is a mean over the edges in view: a start camera that shows only part
+    of the car (the rest beyond the frame) leaves the edges less evidence, and the start's prior
+    weighs more by the share of the model's surface the start shows inside the frame."""
+    whole = _framed(sedan, 35.0, 10.0, 0.8, 1.5)
+    cut = _framed(sedan, 35.0, 10.0, 0.8, 1.5, centre=(0.0, H / 2))
+    assert _in_frame(sedan, whole) == 1.0
+    assert 0.3 < _in_frame(sedan, cut) < 0.7
+    photo, _ = synthesize(sedan.mesh, whole, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
+    options = RegistrationOptions()
+    frame = (0.0, 0.0, W - 1.0, H - 1.0)
+    edges = photo_edges(photo)
+    weight = options.terms.start_weight
+    for start in (whole, cut):
+        cost = _Cost(photo, sedan, frame, None, options, renderer, edges, frame, 0.55, start)
+        assert cost.prior == pytest.approx(weight / _in_frame(sedan, start))
+        # The prior adds to the chamfer as the pose turns away from the start.
+        turned = _framed(sedan, 55.0, 10.0, 0.8, 1.5)
+        plain = _Cost(photo, sedan, frame, None, options, renderer, edges, frame, 0.55)
+        spread = options.structure.structure_spread
+        turn = (rotation_error(turned.R, start.R) / spread) ** 2
+        assert cost(turned) - plain(turned) == pytest.approx(cost.prior * turn)
+    assert _Cost(photo, sedan, frame, None, options, renderer, edges, frame, 0.55).prior == 0.0
 
 
 @pytest.mark.slow

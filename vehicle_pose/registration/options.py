@@ -173,7 +173,9 @@ class Terms(_Group):
     camera and no box, the view-sphere search's cost is raised by ``start_weight`` times the
     square of the angle the pose is turned from the start's rotation over
     ``structure.structure_spread`` (a start's rotation error): the start is evidence about the
-    pose, weighed with the edges (``docs/decisions/0039-start-prior.md``).
+    pose, weighed with the edges (``docs/decisions/0039-start-prior.md``). The weight is divided
+    by the share of the model's surface the start shows inside the frame: a car cut by the frame
+    leaves the edges less evidence (``docs/decisions/0050-a-cut-start-weighs-more.md``).
     """
 
     fit_start_to_box: bool = option(True, "with a start camera and a box: fit the start's place and size to the box",

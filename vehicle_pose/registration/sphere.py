@@ -114,7 +114,8 @@ class _Cost:
     the search size over the target box ``region`` (the photo's ``edges``, found once for every
     target; its edges outside ``region`` but inside ``among`` cost ``clutter`` each), plus the
     box term with a client's box, and with a ``start`` camera the start's prior
-    (``terms.start_weight``: docs/decisions/0039-start-prior.md)."""
+    (``terms.start_weight`` over the share of the model the start shows inside the frame:
+    docs/decisions/0039-start-prior.md, 0050-a-cut-start-weighs-more.md)."""
 
     def __init__(self, image: npt.NDArray[np.uint8], model: VehicleModel, region: Box, box: Box | None,
                  options: RegistrationOptions, renderer: Renderer, edges: PhotoEdges, among: Box,
@@ -127,6 +128,10 @@ class _Cost:
         self.renderer = renderer
         self.box, self.points = box, model.mesh.extreme_points(1000)
         self.terms, self.start, self.spread = options.terms, start, options.structure.structure_spread
+        # The chamfer is a mean over the edges in view: a start that shows part of the car
+        # (the rest beyond the frame) leaves the edges less evidence, and its prior weighs more,
+        # by the share of the model's surface it shows inside the frame.
+        self.prior = 0.0 if start is None else options.terms.start_weight / max(_in_frame(model, start), 0.05)
         self.count = 0
 
     def __call__(self, camera: Camera) -> float:
@@ -136,9 +141,18 @@ class _Cost:
         if self.box is not None and self.terms.box_weight > 0:
             value += self.terms.box_weight * box_overflow(cam, self.points, self.box, self.terms.box_tolerance,
                                                           self.terms.box_shortfall)
-        if self.start is not None and self.terms.start_weight > 0:
-            value += self.terms.start_weight * turned_away(cam, self.start, self.spread)
+        if self.start is not None and self.prior > 0:
+            value += self.prior * turned_away(cam, self.start, self.spread)
         return value
+
+
+def _in_frame(model: VehicleModel, camera: Camera) -> float:
+    """The share of the model's surface (2000 sampled points) that ``camera`` shows inside its
+    frame; points behind the camera are not shown."""
+    points = model.mesh.sample_points(2000)
+    uv = camera.project(points[camera.to_camera(points)[:, 2] > 1e-9])
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+    return float(inside.sum()) / len(points)
 
 
 def _search_size(work: npt.NDArray[np.uint8], options: RegistrationOptions) -> tuple[int, int]:
