@@ -170,7 +170,7 @@ def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(
 def test_a_start_that_shows_part_of_the_car_weighs_its_prior_more(sedan, renderer):
     """The two-way chamfer is a mean over the edges in view: a start camera that shows only part
     of the car (the rest beyond the frame) leaves the edges less evidence, and the start's prior
-    weighs more by the share of the model's surface the start shows inside the frame."""
+    weighs more by the share of the model's points the start shows inside the frame."""
     whole = _framed(sedan, 35.0, 10.0, 0.8, 1.5)
     cut = _framed(sedan, 35.0, 10.0, 0.8, 1.5, centre=(0.0, H / 2))
     assert _in_frame(sedan, whole) == 1.0

@@ -174,7 +174,7 @@ class Terms(_Group):
     square of the angle the pose is turned from the start's rotation over
     ``structure.structure_spread`` (a start's rotation error): the start is evidence about the
     pose, weighed with the edges (``docs/decisions/0039-start-prior.md``). The weight is divided
-    by the share of the model's surface the start shows inside the frame: a car cut by the frame
+    by the share of the model's points the start shows inside the frame: a car cut by the frame
     leaves the edges less evidence (``docs/decisions/0050-a-cut-start-weighs-more.md``).
     """
 

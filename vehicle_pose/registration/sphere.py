@@ -130,7 +130,7 @@ class _Cost:
         self.terms, self.start, self.spread = options.terms, start, options.structure.structure_spread
         # The chamfer is a mean over the edges in view: a start that shows part of the car
         # (the rest beyond the frame) leaves the edges less evidence, and its prior weighs more,
-        # by the share of the model's surface it shows inside the frame.
+        # by the share of the model's points it shows inside the frame.
         self.prior = 0.0 if start is None else options.terms.start_weight / max(_in_frame(model, start), 0.05)
         self.count = 0
 
@@ -147,8 +147,8 @@ class _Cost:
 
 
 def _in_frame(model: VehicleModel, camera: Camera) -> float:
-    """The share of the model's surface (2000 sampled points) that ``camera`` shows inside its
-    frame; points behind the camera are not shown."""
+    """The share of the model's points (2000 of its vertices, drawn at random) that ``camera``
+    shows inside its frame; points behind the camera are not shown."""
     points = model.mesh.sample_points(2000)
     uv = camera.project(points[camera.to_camera(points)[:, 2] > 1e-9])
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
