@@ -149,10 +149,9 @@ class _Cost:
 def _in_frame(model: VehicleModel, camera: Camera) -> float:
     """The share of the model's points (2000 of its vertices, drawn at random) that ``camera``
     shows inside its frame; points behind the camera are not shown."""
-    points = model.mesh.sample_points(2000)
-    uv = camera.project(points[camera.to_camera(points)[:, 2] > 1e-9])
+    uv = camera.project(model.mesh.sample_points(2000))  # nan behind the camera: never inside
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
-    return float(inside.sum()) / len(points)
+    return float(inside.mean())
 
 
 def _search_size(work: npt.NDArray[np.uint8], options: RegistrationOptions) -> tuple[int, int]:
