@@ -327,6 +327,37 @@ def test_where_the_edges_decide_the_shading_is_offered_every_size_s_pose(sedan, 
     assert confirmed.checks["sizes_agree"] == 1.0
 
 
+def test_a_size_the_photo_is_smaller_than_votes_with_the_search_already_run_there(sedan, monkeypatch):
+    """A photo 220 px wide is searched at 220 px for the working size (240) and for 320 alike:
+    the 320 px vote is the first search's, not a search run again. The 200 px search finds
+    another pose; the first's pose stands by two votes of three, each search is weighed against
+    its twin and offered to the shading once, and the time is the two searches'."""
+    import vehicle_pose.registration.sphere as sphere
+
+    first = _searched(_framed(sedan, 40.0, 12.0, 0.8, 1.5), 0.3, {}, 1.0)
+    second = _searched(_framed(sedan, 130.0, 12.0, 0.8, 1.5), 0.3, {}, 2.0)
+    runs = iter([first, second])
+    monkeypatch.setattr(sphere, "sphere_search", lambda *args, **kwargs: next(runs))
+    offered, weighed = [], []
+
+    def shading(work, model, searched, *rest):
+        offered.append(searched)
+
+    def with_twin(found, *rest):
+        weighed.append(found)
+        return found
+
+    monkeypatch.setattr(sphere, "_shading", shading)
+    monkeypatch.setattr(sphere, "_with_twin", with_twin)
+    monkeypatch.setattr(sphere, "sphere_fit", lambda work, model, searched, *rest: "fitted")
+    model = SimpleNamespace(templates=lambda renderer: None)
+    fitted, voted, stage = sphere.sphere_pose(np.zeros((165, 220, 3), np.uint8), model, RegistrationOptions(),
+                                              None, None)  # type: ignore[arg-type]
+    assert weighed == [first, second] and offered == [first, second]
+    assert fitted == "fitted" and stage == "structure" and voted.best is first.best
+    assert voted.checks["sizes_agree"] == pytest.approx(2 / 3) and voted.seconds == pytest.approx(3.0)
+
+
 def test_the_half_turn_twin_turns_the_model_about_its_up_axis_through_its_centre(sedan):
     """The twin is half a turn from the pose, the model's centre and up axis stay where they
     were in the image, its front goes where its back was, and the twin's twin is the pose."""

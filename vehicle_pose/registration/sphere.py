@@ -524,12 +524,24 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         searched = decided(searched)
     else:
         searches, edges = [searched], [decided(searched)]
+        scored = [_search_size(work, options)]  # the size each search scored at (never enlarged)
         for size in votes:
-            found = sphere_search(work, model, templates, options.replace(sphere_size=int(size)), renderer, optimizer,
-                                  init=init, box=box, progress=progress, focal_band=focal_band,
-                                  targets=searched.targets, only=edges[0].best.target)
-            searches.append(found)
-            edges.append(decided(found))
+            sized = options.replace(sphere_size=int(size))
+            if _search_size(work, sized) in scored:
+                # A photo smaller than this size is searched at its own size, as already done:
+                # the same search would find the same pose (about the same target). Its vote is
+                # that search's, and it is not searched or offered to the shading again.
+                k = scored.index(_search_size(work, sized))
+                searches.append(searches[k])
+                edges.append(edges[k])
+                scored.append(scored[k])
+            else:
+                found = sphere_search(work, model, templates, sized, renderer, optimizer, init=init, box=box,
+                                      progress=progress, focal_band=focal_band, targets=searched.targets,
+                                      only=edges[0].best.target)
+                searches.append(found)
+                edges.append(decided(found))
+                scored.append(_search_size(work, sized))
             if max(len(g) for g in _groups(edges)) > (1 + len(votes)) / 2:
                 break  # a majority of all the sizes: the rest cannot outvote it
         voted = _vote(edges)
@@ -537,13 +549,13 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         # The shading is offered every size's search it has not seen, the vote's first: a pose
         # it explains stands, as the first size's would have.
         offered = [searches[i]] if i > 0 else []
-        offered += [s for j, s in enumerate(searches[1:], 1) if j != i]
+        offered += [s for j, s in enumerate(searches[1:], 1) if j != i and _first(s, searches) == j]
         for other in offered:
             polished = _shading(work, model, other, options, renderer, optimizer, box, foreground, progress,
                                 focal_band)
             if polished is not None:
                 fitted, confirmed, stage = polished
-                confirmed = replace(confirmed, seconds=sum(s.seconds for s in edges))
+                confirmed = replace(confirmed, seconds=_seconds(edges))
                 confirmed.checks["sizes_agree"] = _agreement(confirmed.best, edges)
                 return fitted, confirmed, stage
         searched = voted
@@ -593,6 +605,17 @@ def _groups(searches: list[SphereSearch]) -> list[list[int]]:
     return [[j for j, q in enumerate(bests) if rotation_error(p.camera.R, q.camera.R) < RIVAL_APART] for p in bests]
 
 
+def _first(search: SphereSearch, searches: list[SphereSearch]) -> int:
+    """The index of ``search``'s first place in ``searches`` (a size searched already votes
+    with the same search)."""
+    return next(j for j, s in enumerate(searches) if s is search)
+
+
+def _seconds(searches: list[SphereSearch]) -> float:
+    """The time of the searches run (each counted once)."""
+    return sum(s.seconds for j, s in enumerate(searches) if _first(s, searches) == j)
+
+
 def _agreement(pose: Pose, searches: list[SphereSearch]) -> float:
     """The share of the searches whose best pose is within :data:`RIVAL_APART` of ``pose``."""
     return sum(rotation_error(pose.camera.R, s.best.camera.R) < RIVAL_APART for s in searches) / len(searches)
@@ -618,7 +641,7 @@ def _vote(searches: list[SphereSearch]) -> SphereSearch:
     if len(groups[0]) < largest:
         members = {j for g in groups if len(g) == largest for j in g}
         i = min(sorted(members), key=lambda j: first.costs[bests[j].target](bests[j].camera))
-    voted = replace(searches[i], checks=dict(searches[i].checks), seconds=sum(s.seconds for s in searches))
+    voted = replace(searches[i], checks=dict(searches[i].checks), seconds=_seconds(searches))
     voted.checks["sizes_agree"] = len(groups[i]) / len(searches)
     return voted
 
