@@ -527,21 +527,19 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         scored = [_search_size(work, options)]  # the size each search scored at (never enlarged)
         for size in votes:
             sized = options.replace(sphere_size=int(size))
-            if _search_size(work, sized) in scored:
+            scored.append(_search_size(work, sized))
+            if scored[-1] in scored[:-1]:
                 # A photo smaller than this size is searched at its own size, as already done:
                 # the same search would find the same pose (about the same target). Its vote is
                 # that search's, and it is not searched or offered to the shading again.
-                k = scored.index(_search_size(work, sized))
+                k = scored.index(scored[-1])
                 searches.append(searches[k])
                 edges.append(edges[k])
-                scored.append(scored[k])
             else:
-                found = sphere_search(work, model, templates, sized, renderer, optimizer, init=init, box=box,
-                                      progress=progress, focal_band=focal_band, targets=searched.targets,
-                                      only=edges[0].best.target)
-                searches.append(found)
-                edges.append(decided(found))
-                scored.append(_search_size(work, sized))
+                searches.append(sphere_search(work, model, templates, sized, renderer, optimizer, init=init, box=box,
+                                              progress=progress, focal_band=focal_band, targets=searched.targets,
+                                              only=edges[0].best.target))
+                edges.append(decided(searches[-1]))
             if max(len(g) for g in _groups(edges)) > (1 + len(votes)) / 2:
                 break  # a majority of all the sizes: the rest cannot outvote it
         voted = _vote(edges)
@@ -549,7 +547,7 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
         # The shading is offered every size's search it has not seen, the vote's first: a pose
         # it explains stands, as the first size's would have.
         offered = [searches[i]] if i > 0 else []
-        offered += [s for j, s in enumerate(searches[1:], 1) if j != i and _first(s, searches) == j]
+        offered += [s for s in _distinct(searches)[1:] if s is not searches[i]]
         for other in offered:
             polished = _shading(work, model, other, options, renderer, optimizer, box, foreground, progress,
                                 focal_band)
@@ -605,15 +603,19 @@ def _groups(searches: list[SphereSearch]) -> list[list[int]]:
     return [[j for j, q in enumerate(bests) if rotation_error(p.camera.R, q.camera.R) < RIVAL_APART] for p in bests]
 
 
-def _first(search: SphereSearch, searches: list[SphereSearch]) -> int:
-    """The index of ``search``'s first place in ``searches`` (a size searched already votes
-    with the same search)."""
-    return next(j for j, s in enumerate(searches) if s is search)
+def _distinct(searches: list[SphereSearch]) -> list[SphereSearch]:
+    """The searches run, each once, in order (a size searched already votes with the same
+    search)."""
+    out: list[SphereSearch] = []
+    for s in searches:
+        if all(s is not o for o in out):
+            out.append(s)
+    return out
 
 
 def _seconds(searches: list[SphereSearch]) -> float:
     """The time of the searches run (each counted once)."""
-    return sum(s.seconds for j, s in enumerate(searches) if _first(s, searches) == j)
+    return sum(s.seconds for s in _distinct(searches))
 
 
 def _agreement(pose: Pose, searches: list[SphereSearch]) -> float:
