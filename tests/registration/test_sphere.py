@@ -192,6 +192,26 @@ def test_a_start_that_shows_part_of_the_car_weighs_its_prior_more(sedan, rendere
     assert _Cost(photo, sedan, frame, None, options, renderer, edges, frame, 0.55).prior == 0.0
 
 
+def test_a_population_s_costs_drawn_together_are_those_scored_one_by_one(sedan, renderer):
+    """The placements a search ranks are priced in one pass (their frames drawn together, in the
+    layers of one draw where the context can): each cost, the box term's and the start's prior
+    included, is the one its camera gets alone, and each counts as one evaluation."""
+    truth = _framed(sedan, 35.0, 10.0, 0.8, 1.5)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
+    options = RegistrationOptions()
+    frame = (0.0, 0.0, W - 1.0, H - 1.0)
+    box = (40.0, 50.0, 260.0, 200.0)
+    cost = _Cost(photo, sedan, box, box, options, renderer, photo_edges(photo), frame, 0.55, truth)
+    cameras = [_framed(sedan, az, el, fill, 1.5) for az in (0.0, 35.0, 150.0, 260.0) for el, fill in ((5.0, 0.7),
+                                                                                                     (20.0, 1.1))]
+    cameras.append(_framed(sedan, 35.0, 10.0, 0.8, 1.5, centre=(-4 * W, H / 2)))  # out of the frame
+    together = cost.many(cameras)
+    assert cost.count == len(cameras)
+    alone = [cost(c) for c in cameras]
+    assert together == alone
+    assert len(set(together)) == len(cameras)  # every camera priced apart: none a copy of another
+
+
 @pytest.mark.slow
 def test_a_start_camera_alone_is_weighed_with_the_edges(sedan, renderer):
     """The view-sphere search from a start camera prices each pose's turn from the start's

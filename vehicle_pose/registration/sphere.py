@@ -47,7 +47,7 @@ from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import box_mask, resegment, silhouette
 from vehicle_pose.registration.structure import loss_at
-from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.render.renderer import Frame, Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.templates import ViewTemplates, match, turn_to
 from vehicle_pose.search.views import Box, box_overflow, turned_away
@@ -135,9 +135,20 @@ class _Cost:
         self.count = 0
 
     def __call__(self, camera: Camera) -> float:
-        self.count += 1
         cam = camera.scaled(*self.size)
-        value = self.chamfer(self.renderer.render(self.mesh, cam))
+        return self._priced(cam, self.renderer.render(self.mesh, cam))
+
+    def many(self, cameras: list[Camera]) -> list[float]:
+        """The cost of each camera, as :meth:`__call__` gives it, their frames drawn together
+        (:meth:`~vehicle_pose.render.renderer.Renderer.render_many`, each frame the same)."""
+        cams = [camera.scaled(*self.size) for camera in cameras]
+        return [self._priced(cam, frame) for cam, frame in zip(cams, self.renderer.render_many(self.mesh, cams),
+                                                                strict=True)]
+
+    def _priced(self, cam: Camera, frame: Frame) -> float:
+        """The cost of ``cam`` (at the search size) whose frame is ``frame``."""
+        self.count += 1
+        value = self.chamfer(frame)
         if self.box is not None and self.terms.box_weight > 0:
             value += self.terms.box_weight * box_overflow(cam, self.points, self.box, self.terms.box_tolerance,
                                                           self.terms.box_shortfall)
@@ -407,17 +418,20 @@ def sphere_search(
     lens = None if held is None else held[0]
     ranked: list[Pose] = []
     for j, k in enumerate(sought):
-        order = np.argsort(placed.cost[:, j])
-        for i, t in enumerate(order[: search.sphere_rank]):
-            if not np.isfinite(placed.cost[t, j]):
-                break
-            if progress is not None and i % 16 == 0:
-                progress(f"view sphere: ranking target {k + 1}/{len(small)}", len(ranked), float("nan"))
+        if progress is not None:
+            progress(f"view sphere: ranking target {k + 1}/{len(small)}", len(ranked), float("nan"))
+        order = np.argsort(placed.cost[:, j])[: search.sphere_rank]
+        order = order[: int(np.isfinite(placed.cost[order, j]).cumprod().sum())]  # up to the first unplaced
+        cams = []
+        for t in order:
             cam = templates.camera(int(t), placed.focal[t, j], placed.u[t, j], placed.v[t, j], principal, w, h)
             full = cam.scaled(Wf, Hf)
             if lens is not None:
                 full = ViewParams(full, model.mesh.sphere[0], pivot).dolly_zoom(lens * Wf / full.focal)
-            ranked.append(Pose(full, int(t), k, costs[k](full), detail={"placed": float(placed.cost[t, j])}))
+            cams.append(full)
+        # The placements are one population: their frames are drawn together.
+        for t, full, cost in zip(order, cams, costs[k].many(cams), strict=True):
+            ranked.append(Pose(full, int(t), k, cost, detail={"placed": float(placed.cost[t, j])}))
     if init is not None:
         ranked.append(Pose(init, -1, 0, first(init), detail={"start": 1.0}))
     if not ranked:
@@ -718,13 +732,13 @@ def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Came
     distance = views[np.argmin(np.abs(views[:, 2] - 4.0)), 2]
     ring = np.flatnonzero((views[:, 1] == elevation) & (views[:, 2] == distance) & (np.mod(views[:, 0], 30.0) == 0))
     bw, bh = box[2] - box[0], box[3] - box[1]
-    others = []
+    ring_views = []
     for t in ring:
         tb = templates.boxes[t]
         f = float(np.sqrt(bw / (tb[2] - tb[0]) * bh / (tb[3] - tb[1])))
         u = 0.5 * (box[0] + box[2]) - f * 0.5 * (tb[0] + tb[2])
         v = 0.5 * (box[1] + box[3]) - f * 0.5 * (tb[1] + tb[3])
-        view = templates.camera(int(t), f, u, v, (float(cam.K[0, 2]), float(cam.K[1, 2])), w, h)
-        others.append(chamfer(renderer.render(mesh, view)))
+        ring_views.append(templates.camera(int(t), f, u, v, (float(cam.K[0, 2]), float(cam.K[1, 2])), w, h))
+    others = [chamfer(frame) for frame in renderer.render_many(mesh, ring_views)]
     typical = float(np.median(others)) if others else cost
     return {"two_way": float(cost), "edge_lead": float(1.0 - cost / max(typical, 1e-9))}
