@@ -421,7 +421,7 @@ def sphere_search(
         if progress is not None:
             progress(f"view sphere: ranking target {k + 1}/{len(small)}", len(ranked), float("nan"))
         order = np.argsort(placed.cost[:, j])[: search.sphere_rank]
-        order = order[: int(np.isfinite(placed.cost[order, j]).cumprod().sum())]  # up to the first unplaced
+        order = order[np.isfinite(placed.cost[order, j])]  # the unplaced (inf) sort last
         cams = []
         for t in order:
             cam = templates.camera(int(t), placed.focal[t, j], placed.u[t, j], placed.v[t, j], principal, w, h)
