@@ -13,7 +13,10 @@ case belongs to the half of its source photo) and for all: the median error, Acc
 within 30 degrees), the share within 10 degrees, the cases that end more than 2 degrees further
 from the annotation than they started, the flags, the poses whose projection's box meets the
 car's with an IoU under 0.2 (a model shrunk onto a detail or grown past the frame: a rotation
-error can hide them) and how many of those are unflagged, the median time. ``--half`` runs one half
+error can hide them) and how many of those are unflagged, the median time, and how far the
+right poses' elevation lies above the annotation's (median, degrees: the view's elevation is the
+angle of the camera's optical axis to the model's ground plane, positive looking down; a search
+that settles at its templates' elevations shows here). ``--half`` runs one half
 only. Writes ``bench/results/<set>_<start>[_TAG].json`` (``<set>`` is the cases' folder name)
 and a contact sheet ``<set>_<start>[_TAG].png`` with the start (left) and final (right) outline
 of every case. ``--stretch`` registers a copy of the model scaled along its file's axes, a CAD
@@ -136,6 +139,12 @@ def mirrored(photo: np.ndarray, R_gt: np.ndarray, init: dict,
     return np.ascontiguousarray(photo[:, ::-1]), F @ R_gt @ M, out
 
 
+def elevation(R: np.ndarray, model: VehicleModel) -> float:
+    """The elevation (degrees) of a view of rotation ``R`` (model to camera): the angle between
+    the model's ground plane and the line of sight along the optical axis, positive from above."""
+    return float(np.degrees(np.arcsin(np.clip(-(R.T @ [0.0, 0.0, 1.0]) @ parse_axis(model.info.up), -1.0, 1.0))))
+
+
 def worse(run: dict) -> bool:
     """Whether a case ended more than :data:`WORSE_DEG` further from the annotation than it started."""
     return run["start_deg"] is not None and run["final_deg"] > run["start_deg"] + WORSE_DEG
@@ -163,6 +172,8 @@ def summarise(label: dict, runs: list[dict]) -> dict:
         "right flagged": int((~wrong & flagged).sum()),
         f"box iou < {OFF_IOU}": int(off.sum()),
         "of them unflagged": int((off & ~flagged).sum()),
+        "elevation above ann. deg": float(np.median([r["elevation_deg"] - r["annotated_elevation_deg"]
+                                                     for r in runs if r["final_deg"] <= 30.0] or [np.nan])),
         "median s": float(np.median([r["seconds"] for r in runs])),
     }
 
@@ -213,6 +224,8 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
             "start_deg": rotation_error(init.R, R_gt) if init is not None else None,
             "search_start_deg": rotation_error(start_cam.R, R_gt),
             "final_deg": rotation_error(res.camera.R, R_gt),
+            "elevation_deg": elevation(res.camera.R, model),
+            "annotated_elevation_deg": elevation(R_gt, model),
             "box_iou": box_iou(model, res.camera, bbox),
             "focal_widths": res.camera.focal / photo.shape[1],
             "loss": res.loss,
