@@ -22,6 +22,7 @@ from vehicle_pose.registration.sphere import (
     _Cost,
     _in_frame,
     _regions,
+    _ring,
     _seen_box,
     _vote,
     _with_twin,
@@ -29,6 +30,7 @@ from vehicle_pose.registration.sphere import (
 )
 from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
 from vehicle_pose.search.optimize import make_optimizer
+from vehicle_pose.search.templates import TemplateGrid
 from vehicle_pose.search.views import view_camera
 from vehicle_pose.segment.region import find_vehicle
 
@@ -432,3 +434,22 @@ def test_the_best_pose_s_twin_is_refined_and_stands_where_it_costs_less(sedan, r
     stays = _with_twin(searched(kept), sedan, options, make_optimizer(options.optimizer), None, None)
     assert stays.best.camera is wrong and stays.refined[1].detail == {"twin": 1.0}
     assert stays.checks["margin"] == pytest.approx(1.0 - stays.best.cost / stays.refined[1].cost)
+
+
+def test_the_edge_evidence_s_ring_is_every_30_degrees_on_any_grid():
+    """The ring of views a pose's edge evidence is weighed against holds the template nearest
+    every 30 degrees of azimuth: on the default grid exactly those twelve, on a grid of 13-degree
+    steps (where only azimuth 0 is a multiple of 30) twelve others within half a step of them."""
+    def grid(step: float) -> np.ndarray:
+        g = TemplateGrid(azimuth_step=step)
+        return np.array([[a, e, d] for d in g.distances for e in g.elevations for a in g.azimuths])
+
+    usual = grid(5.0)
+    ring = _ring(usual)
+    assert ring.size == 12 and np.all(usual[ring, 1] == 8.0) and np.all(usual[ring, 2] == 4.0)
+    assert usual[ring, 0].tolist() == [30.0 * k for k in range(12)]
+    odd = grid(13.0)
+    ring = _ring(odd)
+    assert ring.size == 12 and len(set(ring.tolist())) == 12
+    gap = np.abs(np.mod(odd[ring, 0] - 30.0 * np.arange(12) + 180.0, 360.0) - 180.0)
+    assert np.all(gap <= 6.5)

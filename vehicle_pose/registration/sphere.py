@@ -708,11 +708,24 @@ def box_agreement(camera: Camera, model: VehicleModel, box: Box) -> dict[str, fl
     return {"box_agreement": 0.0 if seen is None else _box_iou(seen, box)}
 
 
+def _ring(views: npt.NDArray[np.float64]) -> npt.NDArray[np.int64]:
+    """The templates of the edge evidence's ring (rows of ``views``: azimuth, elevation,
+    distance): at the grid's elevation nearest 8 degrees and distance nearest 4 radii, the view
+    nearest each of 0, 30, ..., 330 degrees of azimuth, whatever the grid's step (each view
+    once, in the grid's order)."""
+    elevation = views[np.argmin(np.abs(views[:, 1] - 8.0)), 1]
+    distance = views[np.argmin(np.abs(views[:, 2] - 4.0)), 2]
+    level = np.flatnonzero((views[:, 1] == elevation) & (views[:, 2] == distance))
+    off = np.abs(np.mod(views[level, 0][None, :] - np.arange(0.0, 360.0, 30.0)[:, None] + 180.0, 360.0) - 180.0)
+    return np.unique(level[np.argmin(off, axis=1)])
+
+
 def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Camera, options: RegistrationOptions,
                   renderer: Renderer) -> dict[str, float]:
     """Evidence of a vehicle where a pose puts it: the pose's two-way chamfer over the box of its
     projection (cut to the frame), ``two_way``, and its lead over the median of a ring of views
-    of the model placed in the same box (every 30 degrees of azimuth), ``edge_lead``.
+    of the model placed in the same box (the templates nearest every 30 degrees of azimuth),
+    ``edge_lead``.
 
     A photo whose edges a vehicle explains leads by 0.3-0.6 at the right pose; on a photo of
     noise, or one without edges, every view fits alike and the lead is about 0.
@@ -727,10 +740,7 @@ def edge_evidence(work: npt.NDArray[np.uint8], model: VehicleModel, camera: Came
     mesh = model.exterior(options.pyramid.min_faces, renderer)
     cost = chamfer(renderer.render(mesh, cam))
     templates = model.templates(renderer)
-    views = templates.views
-    elevation = views[np.argmin(np.abs(views[:, 1] - 8.0)), 1]
-    distance = views[np.argmin(np.abs(views[:, 2] - 4.0)), 2]
-    ring = np.flatnonzero((views[:, 1] == elevation) & (views[:, 2] == distance) & (np.mod(views[:, 0], 30.0) == 0))
+    ring = _ring(templates.views)
     bw, bh = box[2] - box[0], box[3] - box[1]
     ring_views = []
     for t in ring:
