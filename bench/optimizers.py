@@ -30,12 +30,11 @@ from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.photo import load_photo
 from vehicle_pose.registration.register import register
 from vehicle_pose.render.renderer import Renderer
-from vehicle_pose.search.optimize import CMAES, NelderMeadRestarts, OptimizeResult, Powell
+from vehicle_pose.search.optimize import CMAES, NelderMeadRestarts, Objective, OptimizeResult, Powell
 
 from common import table, write_report
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
-Objective = Callable[[np.ndarray], float]
 
 
 class _Spent(Exception):
