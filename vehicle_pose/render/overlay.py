@@ -42,7 +42,8 @@ def draw_overlay(
     of the wheels whose outer face looks at the camera in red (the far side's are behind the
     body). ``shade`` in [0, 1] blends a head-light shaded render of the model in.
     With a part map (:mod:`vehicle_pose.render.parts`, for the same camera), each part is tinted
-    in its colour (``tint``: how much) and a legend of the parts seen is drawn in a corner.
+    in its colour (``tint``: how much) and a legend of the parts seen is drawn in the corner
+    where it hides the fewest of the model's pixels (top left where none).
     """
     r = renderer if renderer is not None else Renderer()
     H, W = photo.shape[:2]
@@ -73,7 +74,7 @@ def draw_overlay(
         for x, y in _seen_hubs(wheels, cam):
             cv2.circle(out, (int(round(x)), int(round(y))), 2 * t + 2, _WHEELS, -1, lineType=cv2.LINE_AA)
     if parts is not None:
-        _legend(out, parts)
+        _legend(out, parts, labels > 0)
     return out
 
 
@@ -97,8 +98,10 @@ def _tint_parts(out: npt.NDArray[np.uint8], parts: PartMap, tint: float) -> None
     out[cov] = ((1.0 - tint) * out[cov] + tint * colours[labels[cov]]).astype(np.uint8)
 
 
-def _legend(out: npt.NDArray[np.uint8], parts: PartMap, most: int = 14) -> None:
-    """A legend of the largest parts seen (colour and name), top left, on a dark panel."""
+def _legend(out: npt.NDArray[np.uint8], parts: PartMap, covered: npt.NDArray[np.bool_], most: int = 14) -> None:
+    """A legend of the largest parts seen (colour and name) on a dark panel, in the corner of
+    the picture where the panel hides the fewest ``covered`` pixels (the model's; the first
+    of top left, top right, bottom left, bottom right on a tie)."""
     H, W = out.shape[:2]
     shown = parts.parts[:most]
     if not shown:
@@ -106,9 +109,12 @@ def _legend(out: npt.NDArray[np.uint8], parts: PartMap, most: int = 14) -> None:
     scale = max(0.7, min(W, H) / 700)  # legible on a 640-pixel overlay, in proportion above
     line = int(round(22 * scale))
     box = int(round(14 * scale))
-    width = int(round(230 * scale))
-    height = line * len(shown) + line // 2
-    x0, y0 = int(round(8 * scale)), int(round(8 * scale))
+    width = min(W, int(round(230 * scale)))
+    height = min(H, line * len(shown) + line // 2)
+    gap = int(round(8 * scale))
+    corners = [(x, y) for y in (gap, H - gap - height) for x in (gap, W - gap - width)]
+    corners = [(max(0, x), max(0, y)) for x, y in corners]
+    x0, y0 = min(corners, key=lambda c: int(covered[c[1]:c[1] + height, c[0]:c[0] + width].sum()))
     x1, y1 = min(W, x0 + width), min(H, y0 + height)
     out[y0:y1, x0:x1] = (0.35 * out[y0:y1, x0:x1]).astype(np.uint8)
     for k, view in enumerate(shown):
