@@ -91,6 +91,9 @@ def references(shared: Path, report: Path | None, renderer: Renderer):
     """(name, photo, model, reference camera, whether the target is the frame) of each case."""
     if report is None:
         for case, gt, model in photoreal_cases(shared):
+            if gt.get("rotation_only"):
+                raise SystemExit(f"{case} is annotated by its rotation only: give --report, a bench/real.py report "
+                                 "that places each photo's model")
             model.prepare(renderer)
             yield case.name, load_photo(case / "photo.jpg"), model, Camera.from_dict(gt), False
         return
