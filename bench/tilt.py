@@ -1,11 +1,13 @@
 """How each cue's cost rises as the view is tilted up or down about a reference pose.
 
-Usage: .venv/bin/python bench/tilt.py [--shared ../shared/bench] [--report REPORT.json] [--cases N] [--tag T]
+Usage: .venv/bin/python bench/tilt.py [--shared ../shared/bench] [--report REPORT.json [--found]] [--cases N]
+       [--tag T]
 
 The reference is each photoreal render's exact camera (``--shared ../shared/bench``, the
 default), or with ``--report`` each real photo's annotated rotation (``--shared ../shared/real``
 or ``../shared/real-partial``), placed by the camera that the ``bench/real.py`` report gives
-for it (the photos it ended more than 30 degrees off are left out).
+for it (the photos it ended more than 30 degrees off are left out); with ``--found``, that
+camera itself (the pose the registration found: is it at the cues' own minimum?).
 The reference camera is turned about its own horizontal axis through the model's centre by
 -6, -3, 0, +3 and +6 degrees (positive: the view from higher). Each turned pose's place, size
 and focal length are refitted (rotation held, 200 evaluations) on the view-sphere search's
@@ -87,7 +89,7 @@ def tilted(camera: Camera, model: VehicleModel, degrees: float, R: npt.NDArray[n
     return Camera(camera.K, turned, camera.R @ c + camera.t - turned @ c, camera.width, camera.height)
 
 
-def references(shared: Path, report: Path | None, renderer: Renderer):
+def references(shared: Path, report: Path | None, renderer: Renderer, found: bool = False):
     """(name, photo, model, reference camera, whether the target is the frame) of each case."""
     if report is None:
         for case, gt, model in photoreal_cases(shared):
@@ -108,19 +110,21 @@ def references(shared: Path, report: Path | None, renderer: Renderer):
         gt = json.loads((case / "gt.json").read_text())
         model = models[gt["model"]]
         placed = Camera.from_dict(run["camera"])
-        yield case.name, load_photo(case / "photo.jpg"), model, tilted(placed, model, 0.0, np.array(gt["R"])), True
+        reference = placed if found else tilted(placed, model, 0.0, np.array(gt["R"]))
+        yield case.name, load_photo(case / "photo.jpg"), model, reference, True
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--shared", type=Path, default=Path(__file__).resolve().parents[1] / ".." / "shared" / "bench")
     ap.add_argument("--report", type=Path, default=None)
+    ap.add_argument("--found", action="store_true", help="about the report's own cameras, not the annotations")
     ap.add_argument("--cases", type=int, default=0)
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
     options, renderer, optimizer = RegistrationOptions(), Renderer(), NelderMeadRestarts()
     runs = []
-    for name, photo, model, reference, frame in references(args.shared.resolve(), args.report, renderer):
+    for name, photo, model, reference, frame in references(args.shared.resolve(), args.report, renderer, args.found):
         if args.cases and len(runs) >= args.cases:
             break
         w, h = _search_size(photo, options)
@@ -162,7 +166,7 @@ def main() -> None:
     print(table(rows, list(rows[0])))
     name = f"tilt_{args.shared.resolve().name}" + (f"_{args.tag}" if args.tag else "")
     print(write_report(name, {"benchmark": "tilt", "shared": str(args.shared), "report": str(args.report),
-                              "band": BAND, "levels": LEVELS, "rows": rows, "runs": runs}))
+                              "found": args.found, "band": BAND, "levels": LEVELS, "rows": rows, "runs": runs}))
 
 
 if __name__ == "__main__":
