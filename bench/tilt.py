@@ -32,13 +32,14 @@ bench/results/tilt_<set>[_TAG].json (docs/decisions/0056-the-edges-pose-sits-hig
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import numpy.typing as npt
-from real import load_models
+from real import annotated_start, load_models
 
 from vehicle_pose import RegistrationOptions
 from vehicle_pose.geometry.camera import Camera
@@ -81,12 +82,11 @@ class ColourSplit:
         return float(given / side)
 
 
-def tilted(camera: Camera, model: VehicleModel, degrees: float, R: npt.NDArray[np.float64] | None = None) -> Camera:
-    """``camera`` with rotation ``R`` (its own by default) turned by ``degrees`` about the
-    camera's horizontal axis through the model's centre (the centre's image and depth kept)."""
-    c = model.mesh.sphere[0]
-    turned = cv2.Rodrigues(np.array([np.radians(degrees), 0.0, 0.0]))[0] @ (camera.R if R is None else R)
-    return Camera(camera.K, turned, camera.R @ c + camera.t - turned @ c, camera.width, camera.height)
+def tilted(camera: Camera, model: VehicleModel, degrees: float) -> Camera:
+    """``camera`` turned by ``degrees`` about its own horizontal axis through the model's centre
+    (the centre's image and depth kept)."""
+    turned = cv2.Rodrigues(np.array([np.radians(degrees), 0.0, 0.0]))[0] @ camera.R
+    return annotated_start(model, camera, turned)
 
 
 def references(shared: Path, report: Path | None, renderer: Renderer, found: bool = False):
@@ -110,7 +110,7 @@ def references(shared: Path, report: Path | None, renderer: Renderer, found: boo
         gt = json.loads((case / "gt.json").read_text())
         model = models[gt["model"]]
         placed = Camera.from_dict(run["camera"])
-        reference = placed if found else tilted(placed, model, 0.0, np.array(gt["R"]))
+        reference = placed if found else annotated_start(model, placed, np.array(gt["R"]))
         yield case.name, load_photo(case / "photo.jpg"), model, reference, True
 
 
@@ -124,9 +124,8 @@ def main() -> None:
     args = ap.parse_args()
     options, renderer, optimizer = RegistrationOptions(), Renderer(), NelderMeadRestarts()
     runs = []
-    for name, photo, model, reference, frame in references(args.shared.resolve(), args.report, renderer, args.found):
-        if args.cases and len(runs) >= args.cases:
-            break
+    cases = references(args.shared.resolve(), args.report, renderer, args.found)
+    for name, photo, model, reference, frame in itertools.islice(cases, args.cases or None):
         w, h = _search_size(photo, options)
         image = resized(photo, w, h)
         edges = photo_edges(image)
