@@ -41,6 +41,7 @@ from vehicle_pose.model.library import VehicleModel, model_from_mesh
 from vehicle_pose.model.metadata import parse_axis
 from vehicle_pose.photo import load_photo
 from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.search.views import upright_axes
 
 from common import RESULTS, overlay_pair, parse_options, table, write_report, write_sheet
 
@@ -141,8 +142,11 @@ def mirrored(photo: np.ndarray, R_gt: np.ndarray, init: dict,
 
 def elevation(R: np.ndarray, model: VehicleModel) -> float:
     """The elevation (degrees) of a view of rotation ``R`` (model to camera): the angle between
-    the model's ground plane and the line of sight along the optical axis, positive from above."""
-    return float(np.degrees(np.arcsin(np.clip(-(R.T @ [0.0, 0.0, 1.0]) @ parse_axis(model.info.up), -1.0, 1.0))))
+    the model's ground plane (its up axis as the view-sphere templates measure it,
+    :func:`~vehicle_pose.search.views.upright_axes`) and the line of sight along the optical
+    axis, positive from above."""
+    up = upright_axes(model)[0]
+    return float(np.degrees(np.arcsin(np.clip(-(R.T @ [0.0, 0.0, 1.0]) @ up, -1.0, 1.0))))
 
 
 def worse(run: dict) -> bool:
