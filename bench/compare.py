@@ -63,34 +63,32 @@ def compare(before: dict, after: dict, moved: float) -> tuple[list[dict], list[d
     pairs = [(old[r["case"]], r) for r in after["runs"] if r["case"] in old]
     if not pairs:
         raise SystemExit(f"{after['path']} holds none of {before['path']}'s cases")
-    halves = sorted({b.get("half", "") for b, _ in pairs} - {""})
+    half = np.array([b.get("half", "") for b, _ in pairs])
+    e0 = np.array([error(b, kind) for b, _ in pairs])
+    e1 = np.array([error(a, kind) for _, a in pairs])
+    f0 = np.array([bool(b["failed"]) for b, _ in pairs])
+    f1 = np.array([bool(a["failed"]) for _, a in pairs])
+    step = np.minimum(e1, CAP[kind]) - np.minimum(e0, CAP[kind])
+    right = RIGHT[kind]
     rows = []
-    for half in [*halves, "all"]:
-        sel = [(b, a) for b, a in pairs if half == "all" or b.get("half") == half]
-        e0 = np.array([error(b, kind) for b, _ in sel])
-        e1 = np.array([error(a, kind) for _, a in sel])
-        step = np.minimum(e1, CAP[kind]) - np.minimum(e0, CAP[kind])
-        better, worse = int((step < -moved).sum()), int((step > moved).sum())
-        right = RIGHT[kind]
-        row = {"half": half, "cases": len(sel),
-               f"median {kind} before": float(np.median(e0)), f"median {kind} after": float(np.median(e1)),
-               "right % before": 100.0 * float(np.mean(e0 <= right)),
-               "right % after": 100.0 * float(np.mean(e1 <= right)),
-               "flagged before": sum(bool(b["failed"]) for b, _ in sel),
-               "flagged after": sum(bool(a["failed"]) for _, a in sel),
-               "wrong unflagged before": int(sum(error(b, kind) > right and not b["failed"] for b, _ in sel)),
-               "wrong unflagged after": int(sum(error(a, kind) > right and not a["failed"] for _, a in sel)),
-               "better": better, "worse": worse,
-               "mean step": float(step.mean()),
-               "sign test p": binomtest(better, better + worse).pvalue if better + worse else 1.0}
-        rows.append(row)
-    changed = []
-    for b, a in pairs:
-        e0, e1 = error(b, kind), error(a, kind)
-        if abs(min(e1, CAP[kind]) - min(e0, CAP[kind])) > moved or bool(b["failed"]) != bool(a["failed"]):
-            changed.append({"case": a["case"], "half": a.get("half", ""), f"{kind} before": e0, f"{kind} after": e1,
-                            "flag before": "flagged" if b["failed"] else "",
-                            "flag after": "flagged" if a["failed"] else ""})
+    for name in [*sorted(set(half.tolist()) - {""}), "all"]:
+        sel = np.ones(len(pairs), bool) if name == "all" else half == name
+        better, worse = int((step[sel] < -moved).sum()), int((step[sel] > moved).sum())
+        rows.append({"half": name, "cases": int(sel.sum()),
+                     f"median {kind} before": float(np.median(e0[sel])),
+                     f"median {kind} after": float(np.median(e1[sel])),
+                     "right % before": 100.0 * float(np.mean(e0[sel] <= right)),
+                     "right % after": 100.0 * float(np.mean(e1[sel] <= right)),
+                     "flagged before": int(f0[sel].sum()), "flagged after": int(f1[sel].sum()),
+                     "wrong unflagged before": int(((e0 > right) & ~f0)[sel].sum()),
+                     "wrong unflagged after": int(((e1 > right) & ~f1)[sel].sum()),
+                     "better": better, "worse": worse,
+                     "mean step": float(step[sel].mean()),
+                     "sign test p": binomtest(better, better + worse).pvalue if better + worse else 1.0})
+    changed = [{"case": a["case"], "half": a.get("half", ""), f"{kind} before": float(e0[i]),
+                f"{kind} after": float(e1[i]), "flag before": "flagged" if f0[i] else "",
+                "flag after": "flagged" if f1[i] else ""}
+               for i, (_, a) in enumerate(pairs) if abs(step[i]) > moved or f0[i] != f1[i]]
     return rows, changed
 
 
