@@ -2,7 +2,7 @@
 chamfer overlapped with the next draw.
 
 Usage: .venv/bin/python bench/throughput.py [--shared ../shared/real] [--poses 200]
-       [--sizes 160,320,640] [--repeats 5] [--case NAME] [--registrations 12]
+       [--sizes 160,320,640] [--generation N] [--repeats 5] [--case NAME] [--registrations 12]
        [--modes hinted-real,...] [--tag T]
 
 The searches that score populations (the structure's cross-entropy generations, CMA-ES) hand
@@ -13,7 +13,9 @@ milliseconds:
 - ``single``: :meth:`Renderer.render` for each pose;
 - ``together``: :meth:`Renderer.render_many` of all the poses: up to 100 a draw call, each into
   its own layer of layered targets (:mod:`vehicle_pose.render.layers`; one at a time where the
-  context cannot). Its frames must equal the single draws' bit for bit: checked;
+  context cannot); with ``--generation N``, N poses a call, as a search hands over its
+  generations (CMA-ES's are 9 poses in seven dimensions). Its frames must equal the single
+  draws' bit for bit: checked;
 - ``chamfer`` and ``together + chamfer``: the same, each frame then scored by the structure's
   chamfer (:class:`EdgeLoss`), as its searches do;
 - ``overlapped``: single draws and read-backs made through ctypes (which lets go of Python's
@@ -145,21 +147,27 @@ def measure(renderer: Renderer, mesh: Mesh, photo: np.ndarray, start: Camera, si
     cams = [Camera(ref.K.copy(), turn @ ref.R, ref.t.copy(), w, h) for turn in turns]
     edges = EdgeLoss(resized(photo, w, h), tau=options.structure.anchor_tau, crease=options.terms.edge_crease)
     single = [renderer.render(mesh, cam) for cam in cams]
-    row: dict[str, object] = {"size": f"{w}x{h}", "faces": mesh.n_faces, "poses": len(cams)}
+    row: dict[str, object] = {"size": f"{w}x{h}", "faces": mesh.n_faces, "poses": len(cams),
+                            "generation": args.generation or len(cams)}
     values = [edges(f) for f in single]
 
     def overlapped() -> list[float]:
         futures = [pool.submit(edges, render_unlocked(renderer, mesh, cam, gl)) for cam in cams]
         return [f.result() for f in futures]
 
+    n = args.generation if args.generation > 0 else len(cams)
+
+    def together() -> list[Frame]:
+        return [f for k in range(0, len(cams), n) for f in renderer.render_many(mesh, cams[k : k + n])]
+
     runs: dict[str, Callable[[], object]] = {
         "single": lambda: [renderer.render(mesh, cam) for cam in cams],
-        "together": lambda: renderer.render_many(mesh, cams),
+        "together": together,
         "chamfer": lambda: [edges(renderer.render(mesh, cam)) for cam in cams],
-        "together + chamfer": lambda: [edges(f) for f in renderer.render_many(mesh, cams)],
+        "together + chamfer": lambda: [edges(f) for f in together()],
         "overlapped": overlapped,
     }
-    row["together identical"] = same_frames(renderer.render_many(mesh, cams), single)
+    row["together identical"] = same_frames(together(), single)
     row["overlapped identical"] = overlapped() == values
     row.update({f"{name} ms": ms for name, ms in timed(runs, args.repeats, len(cams)).items()})
     if renderer.ctx.error != "GL_NO_ERROR":
@@ -203,6 +211,8 @@ def main() -> None:
     ap.add_argument("--shared", type=Path, default=SHARED / "real")
     ap.add_argument("--poses", type=int, default=200)
     ap.add_argument("--sizes", default="160,320,640", help="the photo's longer side, pixels")
+    ap.add_argument("--generation", type=int, default=0,
+                    help="poses handed to the renderer at a time in the together runs (0: all)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--case", default="", help="the case whose photo and start are used (default: the first)")
     ap.add_argument("--registrations", type=int, default=12,

@@ -265,6 +265,16 @@ def test_poses_drawn_together_equal_each_drawn_alone_bit_for_bit(renderer, sedan
     assert all(_same(renderer.render(mesh, cam), frame) for cam, frame in zip(cams, together, strict=True))
 
 
+def test_generations_of_several_sizes_in_turn_equal_single_draws(renderer, sedan):
+    """Each draw clears only the layers it uses: a generation of 9 after one of 100 (and of 30
+    after it) finds nothing of the poses before it in its frames."""
+    mesh = sedan.exterior(4096, renderer)
+    for k, count in enumerate((100, 9, 30, 9)):
+        cams = _about(mesh, count, seed=k)
+        together = renderer.render_many(mesh, cams)
+        assert all(_same(renderer.render(mesh, cam), frame) for cam, frame in zip(cams, together, strict=True))
+
+
 def test_poses_drawn_together_keep_their_textures(renderer, tmp_path):
     from PIL import Image
 

@@ -411,7 +411,9 @@ class Renderer:
         windows = np.array([win for _, _, _, win in drawn])
         x0, y0 = windows[:, :2].min(0)
         x1, y1 = (windows[:, :2] + windows[:, 2:]).max(0)
-        self._begin(target.fbo, target.width, target.height, (int(x0), int(y0), int(x1 - x0), int(y1 - y0)))
+        scissor = (int(x0), int(y0), int(x1 - x0), int(y1 - y0))
+        target.clear(len(drawn), scissor)
+        self._begin(target.fbo, target.width, target.height, scissor, clear=False)
         clock = current()
         t0 = time.perf_counter() if clock is not None else 0.0
         try:
@@ -430,16 +432,19 @@ class Renderer:
             self.ctx.scissor = None
         self._check()
 
-    def _begin(self, fbo: moderngl.Framebuffer, width: int, height: int, scissor: tuple[int, int, int, int]) -> None:
-        """Bind ``fbo``, clear its labels and depth within ``scissor`` and set the draw's state."""
+    def _begin(self, fbo: moderngl.Framebuffer, width: int, height: int, scissor: tuple[int, int, int, int],
+               clear: bool = True) -> None:
+        """Bind ``fbo``, clear its labels and depth within ``scissor`` (unless the caller has,
+        ``clear=False``) and set the draw's state."""
         fbo.use()
         fbo.viewport = (0, 0, width, height)
         self.ctx.scissor = scissor
-        # Only labels and depth are cleared: the attributes count only where a label is set,
-        # and clearing their 16 bytes a pixel cost llvmpipe 10-15 % of a 640x480 frame.
-        fbo.color_mask = ((False, False, False, False), (True, True, True, True))  # type: ignore[assignment]
-        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        fbo.color_mask = ((True, True, True, True), (True, True, True, True))  # type: ignore[assignment]
+        if clear:
+            # Only labels and depth are cleared: the attributes count only where a label is set,
+            # and clearing their 16 bytes a pixel cost llvmpipe 10-15 % of a 640x480 frame.
+            fbo.color_mask = ((False, False, False, False), (True, True, True, True))  # type: ignore[assignment]
+            fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            fbo.color_mask = ((True, True, True, True), (True, True, True, True))  # type: ignore[assignment]
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.BLEND)
         self.ctx.front_face = "ccw"
