@@ -334,6 +334,29 @@ def test_a_renderer_that_drew_layers_releases_them(ctx, sedan):
     assert Renderer(ctx).render(mesh, _about(mesh, 1)[0]).pixel_count > 0
 
 
+def test_a_driver_that_will_not_clear_layers_draws_poses_one_at_a_time(ctx, sedan, monkeypatch):
+    """A layered target whose clear records an OpenGL error (here a clear of texture 0, which
+    no driver accepts) is given up when made: the renderer draws one pose at a time, and no
+    error is left on the context."""
+    from vehicle_pose.render import layers
+
+    calls = layers._calls()
+    if calls is None or not supported(ctx):
+        pytest.skip("the context draws no layers")
+    real = calls.glClearTexSubImage
+    monkeypatch.setattr(calls, "glClearTexSubImage", lambda texture, *args: real(0, *args))
+    renderer = Renderer(ctx)
+    try:
+        mesh = sedan.exterior(4096, renderer)
+        cams = _about(mesh, 5)
+        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, renderer.render_many(mesh, cams),
+                                                                      strict=True))
+        assert not renderer.draws_layers and not renderer._targets
+        assert ctx.error == "GL_NO_ERROR"
+    finally:
+        renderer.release()
+
+
 def test_a_driver_that_will_not_make_layered_targets_draws_poses_one_at_a_time(ctx, sedan, monkeypatch):
     import vehicle_pose.render.renderer as rendering
     from vehicle_pose.errors import RenderError

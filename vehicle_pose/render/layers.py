@@ -143,6 +143,14 @@ class LayeredTarget:
         if not complete:
             self.release()
             raise RenderError("the layered framebuffer is incomplete")
+        # Each draw clears its own layers with glClearTexSubImage: a driver that will not (an
+        # error recorded) is found here, by a clear of one pixel, where the renderer can still
+        # draw one pose at a time, rather than at a search's first generation.
+        self.clear(1, (0, 0, 1, 1))
+        error = ctx.error
+        if error != "GL_NO_ERROR":
+            self.release()
+            raise RenderError(f"the layered target cannot be cleared ({error})")
 
     @staticmethod
     def nbytes(width: int, height: int, layers: int) -> int:
