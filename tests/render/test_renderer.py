@@ -308,20 +308,26 @@ def test_poses_of_many_sizes_drawn_together_and_alone_in_turn(renderer, sedan):
     assert len(renderer._targets) <= 2
 
 
+def _drawn_one_at_a_time(ctx, sedan) -> None:
+    """A fresh renderer on ``ctx`` draws a population one pose at a time, each frame the
+    single draw's, holding no layered target and leaving no error on the context."""
+    renderer = Renderer(ctx)
+    try:
+        mesh = sedan.exterior(4096, renderer)
+        cams = _about(mesh, 5)
+        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, renderer.render_many(mesh, cams),
+                                                                      strict=True))
+        assert not renderer.draws_layers and not renderer._targets
+        assert ctx.error == "GL_NO_ERROR"
+    finally:
+        renderer.release()
+
+
 def test_a_context_without_layered_draws_draws_poses_one_at_a_time(ctx, sedan, monkeypatch):
     import vehicle_pose.render.renderer as rendering
 
     monkeypatch.setattr(rendering, "supported", lambda _ctx: False)
-    renderer = Renderer(ctx)
-    try:
-        mesh = sedan.exterior(4096, renderer)
-        cams = _about(mesh, 6)
-        assert not renderer.draws_layers
-        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, renderer.render_many(mesh, cams),
-                                                                         strict=True))
-        assert not renderer._targets
-    finally:
-        renderer.release()
+    _drawn_one_at_a_time(ctx, sedan)
 
 
 def test_a_renderer_that_drew_layers_releases_them(ctx, sedan):
@@ -345,16 +351,7 @@ def test_a_driver_that_will_not_clear_layers_draws_poses_one_at_a_time(ctx, seda
         pytest.skip("the context draws no layers")
     real = calls.glClearTexSubImage
     monkeypatch.setattr(calls, "glClearTexSubImage", lambda texture, *args: real(0, *args))
-    renderer = Renderer(ctx)
-    try:
-        mesh = sedan.exterior(4096, renderer)
-        cams = _about(mesh, 5)
-        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, renderer.render_many(mesh, cams),
-                                                                      strict=True))
-        assert not renderer.draws_layers and not renderer._targets
-        assert ctx.error == "GL_NO_ERROR"
-    finally:
-        renderer.release()
+    _drawn_one_at_a_time(ctx, sedan)
 
 
 def test_a_driver_that_will_not_make_layered_targets_draws_poses_one_at_a_time(ctx, sedan, monkeypatch):
@@ -366,12 +363,4 @@ def test_a_driver_that_will_not_make_layered_targets_draws_poses_one_at_a_time(c
 
     monkeypatch.setattr(rendering, "LayeredTarget", type("Refused", (), {"__init__": refuse,
                                                                          "nbytes": rendering.LayeredTarget.nbytes}))
-    renderer = Renderer(ctx)
-    try:
-        mesh = sedan.exterior(4096, renderer)
-        cams = _about(mesh, 5)
-        assert all(_same(renderer.render(mesh, c), f) for c, f in zip(cams, renderer.render_many(mesh, cams),
-                                                                         strict=True))
-        assert not renderer.draws_layers
-    finally:
-        renderer.release()
+    _drawn_one_at_a_time(ctx, sedan)
