@@ -7,11 +7,13 @@ Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|gt|box|no
 The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were
 made with; rotation only), or of ``--shared ../shared/real-partial`` (the same photos with part
 of the car cut off by the frame). Per case: the start's and the result's rotation error (the
-angle of ``R_est R_gt^T``, degrees), the loss, the confidence and the time. Summary, for each
+angle of ``R_est R_gt^T``, degrees), the viewpoint's error (the same angle for the result's
+camera turned about its centre to look at the model's centre: :func:`viewpoint`), the loss, the
+confidence and the time. Summary, for each
 half of ``split.json`` (``a`` and ``b``, fixed: choose on one, report on the other; a partial
 case belongs to the half of its source photo) and for all: the median error, Acc pi/6 (share
 within 30 degrees), the share within 10 degrees, the cases that end more than 2 degrees further
-from the annotation than they started, the flags, the poses whose projection's box meets the
+from the annotation than they started, the median viewpoint error, the flags, the poses whose projection's box meets the
 car's with an IoU under 0.2 (a model shrunk onto a detail or grown past the frame: a rotation
 error can hide them) and how many of those are unflagged, the median time, and how far the
 right poses' elevation lies above the annotation's (median, degrees: the view's elevation is the
@@ -149,6 +151,29 @@ def elevation(R: np.ndarray, model: VehicleModel) -> float:
     return float(np.degrees(np.arcsin(np.clip(-(R.T @ [0.0, 0.0, 1.0]) @ up, -1.0, 1.0))))
 
 
+def viewpoint(camera: Camera, centre: np.ndarray) -> np.ndarray:
+    """The camera's viewpoint: its rotation turned about the camera's centre, by the smallest
+    turn, until the optical axis passes through ``centre`` (mesh coordinates).
+
+    A viewpoint as PASCAL3D+ defines one (azimuth, elevation and in-plane turn of a camera that
+    looks at the object's centre) does not depend on the principal point. A camera's rotation
+    does: for a photo cropped from a larger one the principal point is unknown, the search takes
+    the crop's centre, and the rotation turns by the angle between that point's ray and the
+    true one (about atan(offset / f): a few degrees with a short lens). The real set's annotations
+    were made on such crops (docs/decisions/0059-the-viewpoint-and-the-principal-point.md).
+    """
+    d = camera.R @ centre + camera.t
+    d = d / np.linalg.norm(d)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(d, z)
+    s, c = float(np.linalg.norm(axis)), float(d @ z)
+    if s < 1e-12:
+        return camera.R.copy()
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    turn = np.eye(3) + k + k @ k * ((1.0 - c) / s**2)  # Rodrigues: d onto the optical axis
+    return turn @ camera.R
+
+
 def worse(run: dict) -> bool:
     """Whether a case ended more than :data:`WORSE_DEG` further from the annotation than it started."""
     return run["start_deg"] is not None and run["final_deg"] > run["start_deg"] + WORSE_DEG
@@ -167,6 +192,7 @@ def summarise(label: dict, runs: list[dict]) -> dict:
         "cases": len(runs),
         "median start deg": float(np.median(start)),
         "median deg": float(np.median(final)),
+        "median viewpoint deg": float(np.median([r["viewpoint_deg"] for r in runs])),
         "median box iou": float(np.median([r["box_iou"] for r in runs])),
         "acc pi/6 %": 100.0 * float(np.mean(final <= 30.0)),
         "within 10 %": 100.0 * float(np.mean(final <= 10.0)),
@@ -228,6 +254,7 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
             "start_deg": rotation_error(init.R, R_gt) if init is not None else None,
             "search_start_deg": rotation_error(start_cam.R, R_gt),
             "final_deg": rotation_error(res.camera.R, R_gt),
+            "viewpoint_deg": rotation_error(viewpoint(res.camera, model.mesh.sphere[0]), R_gt),
             "elevation_deg": elevation(res.camera.R, model),
             "annotated_elevation_deg": elevation(R_gt, model),
             "box_iou": box_iou(model, res.camera, bbox),
@@ -244,7 +271,8 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         runs.append(r)
         start_txt = f"{r['start_deg']:.1f}" if r["start_deg"] is not None else f"({r['search_start_deg']:.1f})"
         print(f"{case.name} {photo.shape[1]:5d}x{photo.shape[0]:<4d} start {start_txt:>6s} deg -> "
-              f"{r['final_deg']:6.1f} deg  box {r['box_iou']:.2f}  f {r['focal_widths']:.2f} W  "
+              f"{r['final_deg']:6.1f} deg (view {r['viewpoint_deg']:5.1f})  box {r['box_iou']:.2f}  "
+              f"f {r['focal_widths']:.2f} W  "
               f"loss {r['loss']:.4f} {r['pose_stage']}  "
               f"conf {'-' if r['confidence'] is None else format(r['confidence'], '.2f')} "
               f"{'FLAGGED ' if r['failed'] else ''}{r['seconds']:.1f} s", flush=True)
