@@ -1,6 +1,6 @@
 """Two runs of a benchmark, case by case: what a change moved, half by half, and whether more than chance.
 
-Usage: .venv/bin/python bench/compare.py BEFORE.json AFTER.json [AFTER.json ...] [--tag TAG]
+Usage: .venv/bin/python bench/compare.py BEFORE.json AFTER.json [AFTER.json ...] [--viewpoint] [--tag TAG]
 
 Each argument is a report that ``bench/real.py``, ``bench/accuracy.py`` or ``bench/nohint.py``
 wrote (a path, or a name in bench/results without ``.json``); every later report is compared
@@ -13,7 +13,9 @@ cases either way at random would split them as unevenly or more). With twelve ph
 median moves by half a degree under a null change (docs/decisions/0056-the-edges-pose-sits-high.md),
 so the moved cases and the sign test say more than the median's step. A photoreal report is
 compared the same way in pixels (success within 5 px, errors counted up to 50 px). Then every
-case that moved or changed its flag is listed. Writes bench/results/compare[_TAG].json.
+case that moved or changed its flag is listed. ``--viewpoint`` compares real-photo reports on
+their viewpoint errors instead (``viewpoint_deg``: each camera turned to look at the model's
+centre, docs/decisions/0059-the-viewpoint-and-the-principal-point.md). Writes bench/results/compare[_TAG].json.
 """
 
 from __future__ import annotations
@@ -50,22 +52,32 @@ def unit(report: dict) -> str:
     return "deg" if "final_deg" in run else "px"
 
 
-def error(run: dict, kind: str) -> float:
-    return float(run["final_deg"] if kind == "deg" else run["error_px"])
+def error(run: dict, kind: str, field: str = "final_deg") -> float:
+    return float(run[field] if kind == "deg" else run["error_px"])
 
 
-def compare(before: dict, after: dict, moved: float) -> tuple[list[dict], list[dict]]:
-    """The summary rows (per half and over all) and the cases that moved or changed their flag."""
+def compare(before: dict, after: dict, moved: float, viewpoint: bool = False) -> tuple[list[dict], list[dict]]:
+    """The summary rows (per half and over all) and the cases that moved or changed their flag;
+    with ``viewpoint``, on the real photos' viewpoint errors."""
     kind = unit(before)
     if unit(after) != kind:
         raise SystemExit(f"{after['path']} and {before['path']} are reports of different benchmarks")
+    field = "final_deg"
+    if viewpoint:
+        if kind != "deg":
+            raise SystemExit("--viewpoint compares real-photo reports only")
+        for report in (before, after):
+            if "viewpoint_deg" not in report["runs"][0]:
+                raise SystemExit(f"{report['path']} has no viewpoint errors (bench/real.py reports them since "
+                                 "abaed67)")
+        field = "viewpoint_deg"
     old = {r["case"]: r for r in before["runs"]}
     pairs = [(old[r["case"]], r) for r in after["runs"] if r["case"] in old]
     if not pairs:
         raise SystemExit(f"{after['path']} holds none of {before['path']}'s cases")
     half = np.array([b.get("half", "") for b, _ in pairs])
-    e0 = np.array([error(b, kind) for b, _ in pairs])
-    e1 = np.array([error(a, kind) for _, a in pairs])
+    e0 = np.array([error(b, kind, field) for b, _ in pairs])
+    e1 = np.array([error(a, kind, field) for _, a in pairs])
     f0 = np.array([bool(b["failed"]) for b, _ in pairs])
     f1 = np.array([bool(a["failed"]) for _, a in pairs])
     step = np.minimum(e1, CAP[kind]) - np.minimum(e0, CAP[kind])
@@ -97,6 +109,8 @@ def main() -> None:
     ap.add_argument("reports", nargs="+", help="the report compared with (first), then the reports compared")
     ap.add_argument("--moved", type=float, default=None,
                     help="how far a case must move to count (default 0.5 deg, or 0.05 px on the renders)")
+    ap.add_argument("--viewpoint", action="store_true",
+                    help="real photos: compare the viewpoint errors (docs/decisions/0059) instead of the rotations'")
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
     if len(args.reports) < 2:
@@ -106,14 +120,15 @@ def main() -> None:
     out = []
     for name in args.reports[1:]:
         after = load(name)
-        rows, changed = compare(before, after, moved)
-        print(f"\n{after['path']} against {before['path']} (moved: more than {moved:g})")
+        rows, changed = compare(before, after, moved, args.viewpoint)
+        on = ", viewpoints" if args.viewpoint else ""
+        print(f"\n{after['path']} against {before['path']} (moved: more than {moved:g}{on})")
         print(table(rows, list(rows[0])))
         if changed:
             print(table(changed, list(changed[0])))
         out.append({"before": before["path"], "after": after["path"], "rows": rows, "changed": changed})
     name = "compare" + (f"_{args.tag}" if args.tag else "")
-    print(write_report(name, {"moved": moved, "comparisons": out}))
+    print(write_report(name, {"moved": moved, "viewpoint": args.viewpoint, "comparisons": out}))
 
 
 if __name__ == "__main__":
