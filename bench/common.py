@@ -21,7 +21,7 @@ from vehicle_pose.metrics import projection_error as _projection_error
 from vehicle_pose.model.library import VehicleModel, model_from_mesh
 from vehicle_pose.render.gl import get_context
 from vehicle_pose.render.overlay import draw_overlay, save_png
-from vehicle_pose.render.renderer import Renderer
+from vehicle_pose.render.renderer import Frame, Renderer
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -65,6 +65,12 @@ def write_report(name: str, data: dict) -> Path:
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(data, indent=2) + "\n")
     return path
+
+
+def same_frames(a: list[Frame], b: list[Frame]) -> bool:
+    """Whether two lists of frames hold the same windows, labels and covered attributes."""
+    return all(f.x0 == g.x0 and f.y0 == g.y0 and np.array_equal(f.labels, g.labels)
+               and np.array_equal(f.covered(f.attrs), g.covered(g.attrs)) for f, g in zip(a, b, strict=True))
 
 
 def projection_error(points: np.ndarray, est: Camera, truth: Camera) -> float:

@@ -31,9 +31,9 @@ from real import load_models
 from vehicle_pose import RegistrationOptions
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.mesh import Mesh
-from vehicle_pose.render.renderer import Frame, Renderer
+from vehicle_pose.render.renderer import Renderer
 
-from common import photoreal_cases, table, write_report
+from common import photoreal_cases, same_frames, table, write_report
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 MARGIN = 0.05  # pixels a face's box must miss every pixel centre by (the exterior pass's margin)
@@ -65,11 +65,6 @@ def culled(mesh: Mesh, keep: list[np.ndarray]) -> Mesh:
     return Mesh(tuple(replace(p, faces=p.faces[k]) for p, k in zip(mesh.parts, keep, strict=True) if k.any()))
 
 
-def same(a: Frame, b: Frame) -> bool:
-    return (a.x0, a.y0) == (b.x0, b.y0) and np.array_equal(a.labels, b.labels) \
-        and np.array_equal(a.covered(a.attrs), b.covered(b.attrs))
-
-
 def ms(run: Callable[[], object], repeats: int) -> float:
     t = time.perf_counter()
     for _ in range(repeats):
@@ -96,7 +91,7 @@ def measure(renderer: Renderer, mesh: Mesh, cam: Camera, name: str, repeats: int
     for kind, m in meshes.items():
         row[f"{kind} faces"] = m.n_faces
         row[f"{kind} ms"] = float(np.median(times[kind]))
-        row[f"{kind} same"] = same(whole, renderer.render(m, cam))
+        row[f"{kind} same"] = same_frames([whole], [renderer.render(m, cam)])
     row["choosing ms"] = ms(lambda: chosen(mesh, cam, True, True), max(1, repeats // 4))
     print(row, flush=True)
     return row

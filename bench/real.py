@@ -4,28 +4,27 @@ Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|gt|box|no
        [--half a|b] [--stretch SX,SY,SZ] [--mirror] [--cases N] [--shared ../shared/real]
        [--option KEY=VALUE ...] [--tag TAG]
 
-The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were
-made with; rotation only), or of ``--shared ../shared/real-partial`` (the same photos with part
-of the car cut off by the frame). Per case: the start's and the result's rotation error (the
-angle of ``R_est R_gt^T``, degrees), the viewpoint's error (the same angle for the result's
-camera turned about its centre to look at the model's centre: :func:`viewpoint`), the loss, the
-confidence and the time. Summary, for each
-half of ``split.json`` (``a`` and ``b``, fixed: choose on one, report on the other; a partial
-case belongs to the half of its source photo) and for all: the median error, Acc pi/6 (share
-within 30 degrees), the share within 10 degrees, the cases that end more than 2 degrees further
-from the annotation than they started, the median viewpoint error, the flags, the poses whose projection's box meets the
-car's with an IoU under 0.2 (a model shrunk onto a detail or grown past the frame: a rotation
-error can hide them) and how many of those are unflagged, the median time, and how far the
-right poses' elevation lies above the annotation's (median, degrees: the view's elevation is the
-angle of the camera's optical axis to the model's ground plane, positive looking down; a search
-that settles at its templates' elevations shows here). ``--half`` runs one half
-only. Writes ``bench/results/<set>_<start>[_TAG].json`` (``<set>`` is the cases' folder name)
-and a contact sheet ``<set>_<start>[_TAG].png`` with the start (left) and final (right) outline
-of every case. ``--stretch`` registers a copy of the model scaled along its file's axes, a CAD
-model close to the car but not exact (the annotated rotation still holds). ``--mirror`` registers
-each photo turned left to right, with its start, box and annotation mirrored to match: the same
-cars seen in a mirror, photos that no constant was chosen on (the templates, the searches'
-placements and the images' pixels all differ; the CAD model is left-right symmetric).
+The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were made
+with; rotation only), or of ``--shared ../shared/real-partial`` (the same photos with part of the
+car cut off by the frame). Per case: the start's and the result's rotation error (the angle of
+``R_est R_gt^T``, degrees), the viewpoint's error (the same angle for the result's camera turned
+about its centre to look at the model's centre: :func:`viewpoint`), the loss, the confidence and
+the time. Summary, for each half of ``split.json`` (``a`` and ``b``, fixed: choose on one, report
+on the other; a partial case belongs to the half of its source photo) and for all: the median
+error, the median viewpoint error, Acc pi/6 (share within 30 degrees), the share within 10 degrees,
+the cases that end more than 2 degrees further from the annotation than they started, the flags,
+the poses whose projection's box meets the car's with an IoU under 0.2 (a model shrunk onto a
+detail or grown past the frame: a rotation error can hide them) and how many of those are
+unflagged, the median time, and how far the right poses' elevation lies above the annotation's
+(median, degrees: the view's elevation is the angle of the camera's optical axis to the model's
+ground plane, positive looking down; a search that settles at its templates' elevations shows
+here). ``--half`` runs one half only. Writes ``bench/results/<set>_<start>[_TAG].json`` (``<set>``
+is the cases' folder name) and a contact sheet ``<set>_<start>[_TAG].png`` with the start (left)
+and final (right) outline of every case. ``--stretch`` registers a copy of the model scaled along
+its file's axes, a CAD model close to the car but not exact (the annotated rotation still holds).
+``--mirror`` registers each photo turned left to right, with its start, box and annotation mirrored
+to match: the same cars seen in a mirror, photos that no constant was chosen on (the templates, the
+searches' placements and the images' pixels all differ; the CAD model is left-right symmetric).
 """
 
 from __future__ import annotations
@@ -34,6 +33,7 @@ import argparse
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from vehicle_pose import RegistrationOptions, register
@@ -163,15 +163,10 @@ def viewpoint(camera: Camera, centre: np.ndarray) -> np.ndarray:
     were made on such crops (docs/decisions/0059-the-viewpoint-and-the-principal-point.md).
     """
     d = camera.R @ centre + camera.t
-    d = d / np.linalg.norm(d)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(d, z)
-    s, c = float(np.linalg.norm(axis)), float(d @ z)
-    if s < 1e-12:
-        return camera.R.copy()
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    turn = np.eye(3) + k + k @ k * ((1.0 - c) / s**2)  # Rodrigues: d onto the optical axis
-    return turn @ camera.R
+    axis = np.cross(d, [0.0, 0.0, 1.0])  # |axis| = |d| sin(angle), d @ z = |d| cos(angle)
+    s = float(np.linalg.norm(axis))
+    turn = axis * (np.arctan2(s, d[2]) / s) if s > 1e-12 else np.zeros(3)  # d onto the optical axis
+    return cv2.Rodrigues(turn)[0] @ camera.R
 
 
 def worse(run: dict) -> bool:

@@ -59,7 +59,7 @@ from vehicle_pose.registration.register import register
 from vehicle_pose.render.gl import gl_library
 from vehicle_pose.render.renderer import Frame, Renderer, _matrices, clip_planes, uniform
 
-from common import table, write_report
+from common import same_frames, table, write_report
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 
@@ -117,12 +117,6 @@ def render_unlocked(renderer: Renderer, mesh: Mesh, camera: Camera, gl: ctypes.C
     return Frame(attrs, labels, x0, y0, camera.width, camera.height)
 
 
-def same_frames(a: list[Frame], b: list[Frame]) -> bool:
-    """Whether two lists of frames hold the same windows, labels and covered attributes."""
-    return all(f.x0 == g.x0 and f.y0 == g.y0 and np.array_equal(f.labels, g.labels)
-               and np.array_equal(f.covered(f.attrs), g.covered(g.attrs)) for f, g in zip(a, b, strict=True))
-
-
 def timed(runs: dict[str, Callable[[], object]], repeats: int, count: int) -> dict[str, float]:
     """Milliseconds a pose of each of ``runs`` over ``count`` poses, the median of ``repeats``;
     the runs take turns, so that a machine whose speed drifts (a shared VM) slows them alike."""
@@ -147,15 +141,13 @@ def measure(renderer: Renderer, mesh: Mesh, photo: np.ndarray, start: Camera, si
     cams = [Camera(ref.K.copy(), turn @ ref.R, ref.t.copy(), w, h) for turn in turns]
     edges = EdgeLoss(resized(photo, w, h), tau=options.structure.anchor_tau, crease=options.terms.edge_crease)
     single = [renderer.render(mesh, cam) for cam in cams]
-    row: dict[str, object] = {"size": f"{w}x{h}", "faces": mesh.n_faces, "poses": len(cams),
-                            "generation": args.generation or len(cams)}
+    n = args.generation if args.generation > 0 else len(cams)  # poses handed over at a time
+    row: dict[str, object] = {"size": f"{w}x{h}", "faces": mesh.n_faces, "poses": len(cams), "generation": n}
     values = [edges(f) for f in single]
 
     def overlapped() -> list[float]:
         futures = [pool.submit(edges, render_unlocked(renderer, mesh, cam, gl)) for cam in cams]
         return [f.result() for f in futures]
-
-    n = args.generation if args.generation > 0 else len(cams)
 
     def together() -> list[Frame]:
         return [f for k in range(0, len(cams), n) for f in renderer.render_many(mesh, cams[k : k + n])]
