@@ -19,6 +19,7 @@ from vehicle_pose.registration.sphere import (
     REGION_BORDERS,
     Pose,
     SphereSearch,
+    _box_iou,
     _Cost,
     _in_frame,
     _regions,
@@ -27,6 +28,7 @@ from vehicle_pose.registration.sphere import (
     _vote,
     _with_twin,
     half_turn,
+    sphere_search,
 )
 from vehicle_pose.render.synth import LIGHTINGS, background, synthesize
 from vehicle_pose.search.optimize import make_optimizer
@@ -167,6 +169,31 @@ def test_a_start_camera_alone_on_a_car_that_fills_the_frame_ends_no_further_off(
     # and in the frame, not in the regions GrabCut finds without a hint.
     searched = {tuple(c["target"]) for c in result.candidates}
     assert searched <= {_seen_box(start, sedan, 4.0), (0.0, 0.0, W - 1.0, H - 1.0)}
+
+
+@pytest.mark.slow
+def test_a_start_camera_alone_off_the_car_looks_for_it_in_the_region_about_the_start(sedan, renderer):
+    """A start camera alone, off the car: its projection, cut to the frame, holds only the
+    bottom-right of a car that the frame cuts. The box it is looked for in grows to the
+    vehicle's region GrabCut finds about the start's silhouette, and the whole car is found;
+    in the start's box alone a model shrunk into it wins."""
+    truth = _framed(sedan, 210.0, 10.0, 1.2, 1.2, (0.75 * W, 0.7 * H))
+    start = _framed(sedan, 220.0, 3.0, 1.0, 10.0, (1.0 * W, 0.95 * H))
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=5)
+    whole = _seen_box(truth, sedan, 1.0)
+    started = _seen_box(start, sedan, 4.0)
+    assert whole is not None and started is not None and _box_iou(started, whole) < 0.3
+    searches = {}
+    for on in (True, False):
+        options = RegistrationOptions.from_flat(sphere_start_region=on, edge_weight=0.0)
+        searches[on] = sphere_search(photo, sedan, sedan.templates(renderer), options, renderer,
+                                     make_optimizer(options.optimizer), init=start)
+    grown = searches[True].targets[0].box
+    assert _box_iou(grown, whole) > 0.8 and grown[0] < started[0] and grown[1] < started[1]
+    assert searches[True].targets[1].box == (0.0, 0.0, W - 1.0, H - 1.0)
+    assert _box_iou(_seen_box(searches[True].best.camera, sedan, 1.0), whole) > 0.85
+    assert searches[False].targets[0].box == started
+    assert _box_iou(_seen_box(searches[False].best.camera, sedan, 1.0), whole) < 0.3
 
 
 def test_a_start_that_shows_part_of_the_car_weighs_its_prior_more(sedan, renderer):

@@ -386,6 +386,9 @@ class Search(_Group):
     sphere_twin: bool = option(True, "without a start camera, where the edges decide: each search's best pose "
                                "weighed against its half-turn twin, refined as its poses were (decision 0037)")
     sphere_hold: int = option(100, "evaluations of each refinement's first stage, its rotation held", low=0)
+    sphere_start_region: bool = option(True, "with a start camera and no box, the box of the start's projection "
+                                       "grown to the vehicle's region GrabCut finds about the start's silhouette "
+                                       "(decision 0060)")
     sphere_clutter: float = option(0.55, "cost of a photo edge outside a target's box but inside another "
                                    "target's, in the two-way chamfer of the targets", low=0.0, high=1.0)
     sphere_evaluations: int = option(200, "evaluations of each refinement's second stage", low=0)

@@ -2,7 +2,8 @@
 (``docs/decisions/0020-view-sphere-search.md``).
 
 1. **Targets**: the boxes the vehicle is looked for in. The client's box; else, with a start
-   camera, the box of its projection and the photo's frame (a claims photo is mostly the car);
+   camera, the box of its projection grown to the vehicle's region GrabCut finds about it, and
+   the photo's frame (a claims photo is mostly the car);
    else the frame and the regions GrabCut finds.
 2. **Hypotheses** (:func:`~vehicle_pose.search.templates.match`): every template of the model's
    view sphere allowed by the start camera (all of them without one) placed about each target
@@ -51,7 +52,8 @@ from vehicle_pose.render.renderer import Frame, Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.templates import ViewTemplates, match, turn_to
 from vehicle_pose.search.views import Box, box_overflow, turned_away
-from vehicle_pose.segment.region import VehicleRegion, find_vehicle
+from vehicle_pose.segment.grabcut import grabcut_foreground
+from vehicle_pose.segment.region import VehicleRegion, find_vehicle, largest_component
 
 __all__ = ["Pose", "SphereSearch", "sphere_search", "half_turn", "sphere_fit", "sphere_pose", "edge_evidence",
            "RIVAL_APART"]
@@ -183,12 +185,12 @@ class Target:
 
 
 def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | None, box: Box | None,
-             between: Callable[[], None] | None = None) -> list[Target]:
+             between: Callable[[], None] | None = None, about: _About | None = None) -> list[Target]:
     """The boxes the vehicle is looked for in: the client's box (the vehicle segmented in it by
     GrabCut); else the photo's frame (a claims photo is mostly the car), with a start camera the
-    box of its projection first; without a hint, the frame and the regions GrabCut finds from
-    rectangles 8-30 % inside the border (one box each, those that differ). ``between`` is
-    called before the GrabCuts.
+    box of its projection first (grown to the vehicle's region about it with ``about``);
+    without a hint, the frame and the regions GrabCut finds from rectangles 8-30 % inside the
+    border (one box each, those that differ). ``between`` is called before the GrabCuts.
 
     A start camera says where the vehicle is: the regions GrabCut finds without it are not
     searched (one that holds a lamp or a panel can win, the model shrunk onto it, by a margin
@@ -201,6 +203,8 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
         b = _seen_box(init, model, 4.0)
         if b is None:
             raise PoseError("the start pose puts the model out of the photo")
+        if about is not None:
+            b = _union(b, _region_about(work, silhouette(model, init, about.renderer), about.margin))
         if _box_iou(b, out[0].box) < 0.8:
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
         return out  # the start's box and the frame
@@ -210,6 +214,36 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
         if all(_box_iou(region.box, o.box) < 0.8 for o in out):
             out.append(Target(region.box, region.mask))
     return out
+
+
+@dataclass(frozen=True)
+class _About:
+    """What finding the vehicle's region about a start camera needs: the renderer its
+    silhouette is drawn with and GrabCut's seed margin (silhouette diagonals)."""
+
+    renderer: Renderer
+    margin: float
+
+
+def _region_about(work: npt.NDArray[np.uint8], start: npt.NDArray[np.bool_], margin: float) -> Box:
+    """The box of the vehicle's region about a start's silhouette ``start``: GrabCut seeded by
+    the silhouette (:func:`~vehicle_pose.segment.grabcut.grabcut_foreground`, ``margin``), the
+    rest of the photo but its one-pixel border probable background, so the region may reach as
+    far as the vehicle's colours do (a start a little off or small shows part of the car); its
+    largest piece. Where GrabCut keeps too little of the silhouette, the photo less its border
+    (docs/decisions/0060-the-vehicle-s-region-about-the-start.md)."""
+    H, W = start.shape
+    open_ = np.ones((H, W), bool)
+    open_[[0, -1], :] = open_[:, [0, -1]] = False
+    found = largest_component(grabcut_foreground(work, start, margin=margin, region=open_))
+    ys, xs = np.nonzero(found)
+    if ys.size == 0:
+        return (1.0, 1.0, W - 2.0, H - 2.0)
+    return (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max()))
+
+
+def _union(a: Box, b: Box) -> Box:
+    return (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
 
 
 @timed("grabcut")
@@ -392,7 +426,9 @@ def sphere_search(
     if tick is not None:
         tick()
     if targets is None:
-        targets = _targets(work, model, init, box, tick)
+        about = (_About(renderer, options.segmentation.grabcut_margin)
+                 if init is not None and search.sphere_start_region else None)
+        targets = _targets(work, model, init, box, tick, about)
     w, h = _search_size(work, options)
     sx, sy = w / Wf, h / Hf
     image = resized(work, w, h)
