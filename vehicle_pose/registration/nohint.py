@@ -27,7 +27,16 @@ from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import resegment
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.optimize import Optimizer, make_optimizer
-from vehicle_pose.search.views import Box, Candidate, distinct, refocus, score_cameras, view_camera, view_search
+from vehicle_pose.search.views import (
+    Box,
+    Candidate,
+    box_union,
+    distinct,
+    refocus,
+    score_cameras,
+    view_camera,
+    view_search,
+)
 from vehicle_pose.search.wheels import detect_wheels, wheel_candidates
 from vehicle_pose.segment.region import VehicleRegion, find_vehicle
 
@@ -65,13 +74,6 @@ def _projected_box(model: VehicleModel, camera: Camera) -> Box | None:
     if not np.all(np.isfinite(uv)):
         return None
     return float(uv[:, 0].min()), float(uv[:, 1].min()), float(uv[:, 0].max()), float(uv[:, 1].max())
-
-
-def _union(a: Box, b: Box | None) -> Box:
-    """The smallest box holding both (``a`` when ``b`` is None)."""
-    if b is None:
-        return a
-    return min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])
 
 
 def search_starts(
@@ -187,7 +189,7 @@ def search_pass(
     refine = FitPlan(coarse_to_fine=False, evaluations=budgets.refine_evaluations, resegment=False, edge_weight=0.0)
     for k, (_, cam, cand) in enumerate(chosen):
         prefix = stage + (f"refine {k + 1}/{len(chosen)}: " if len(chosen) > 1 else "refine: ")
-        win = Window.around(_union(region.box, _projected_box(model, cam)), Wf, Hf,
+        win = Window.around(box_union(region.box, _projected_box(model, cam)), Wf, Hf,
                             size=mids[-1] if mids else longer, margin=_window_margin(options))
         mf = fit(win.image(work), model, win.camera(cam), options, refine, renderer, refiner, progress,
                  None if fg is None else win.mask(fg), prefix)

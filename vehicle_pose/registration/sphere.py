@@ -51,7 +51,7 @@ from vehicle_pose.registration.structure import loss_at
 from vehicle_pose.render.renderer import Frame, Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.templates import ViewTemplates, match, turn_to
-from vehicle_pose.search.views import Box, box_overflow, turned_away
+from vehicle_pose.search.views import Box, box_overflow, box_union, turned_away
 from vehicle_pose.segment.grabcut import grabcut_foreground
 from vehicle_pose.segment.region import VehicleRegion, find_vehicle, largest_component
 
@@ -204,7 +204,7 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
         if b is None:
             raise PoseError("the start pose puts the model out of the photo")
         if about is not None:
-            b = _union(b, _region_about(work, silhouette(model, init, about.renderer), about.margin))
+            b = box_union(b, _region_about(work, silhouette(model, init, about.renderer), about.margin))
         if _box_iou(b, out[0].box) < 0.8:
             out.insert(0, Target(b, find_vehicle(work, rect=b).mask))
         return out  # the start's box and the frame
@@ -232,18 +232,10 @@ def _region_about(work: npt.NDArray[np.uint8], start: npt.NDArray[np.bool_], mar
     far as the vehicle's colours do (a start a little off or small shows part of the car); its
     largest piece. Where GrabCut keeps too little of the silhouette, the photo less its border
     (docs/decisions/0060-the-vehicle-s-region-about-the-start.md)."""
-    H, W = start.shape
-    open_ = np.ones((H, W), bool)
+    open_ = np.ones(start.shape, bool)
     open_[[0, -1], :] = open_[:, [0, -1]] = False
-    found = largest_component(grabcut_foreground(work, start, margin=margin, region=open_))
-    ys, xs = np.nonzero(found)
-    if ys.size == 0:
-        return (1.0, 1.0, W - 2.0, H - 2.0)
-    return (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max()))
-
-
-def _union(a: Box, b: Box) -> Box:
-    return (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+    return VehicleRegion.from_mask(largest_component(grabcut_foreground(work, start, margin=margin,
+                                                                        region=open_))).box
 
 
 @timed("grabcut")

@@ -30,6 +30,7 @@ from vehicle_pose.segment.region import VehicleRegion
 
 __all__ = [
     "Box",
+    "box_union",
     "Candidate",
     "SearchGrid",
     "parse_bbox",
@@ -142,6 +143,13 @@ def turned_away(camera: Camera, start: Camera, spread: float) -> float:
     the pose as the photo is, and the searches from it weigh the two
     (docs/decisions/0039-start-prior.md)."""
     return (rotation_error(camera.R, start.R) / spread) ** 2
+
+
+def box_union(a: Box, b: Box | None) -> Box:
+    """The smallest box holding both (``a`` when ``b`` is None)."""
+    if b is None:
+        return a
+    return min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])
 
 
 def box_overflow(camera: Camera, points: FloatArray, box: Box, margin: float, shortfall: float | None = None) -> float:
