@@ -19,8 +19,10 @@ from vehicle_pose.registration.sphere import (
     REGION_BORDERS,
     Pose,
     SphereSearch,
+    Target,
     _box_iou,
     _Cost,
+    _frame_choice,
     _in_frame,
     _regions,
     _ring,
@@ -142,6 +144,35 @@ def test_a_box_alone_reaches_the_pose_no_hint_reaches(sedan, renderer):
     assert boxed.start_source == "bbox" and free.start_source == "none"
     assert projection_error(sedan, boxed.camera, truth) < 2.0
     assert projection_error(sedan, free.camera, truth) < 2.0
+
+
+@pytest.mark.slow
+def test_where_the_edges_decide_the_frame_s_pose_stands_where_the_frame_prefers_it(sedan, renderer):
+    """A target that holds part of the car (here its front third) pays the clutter price for the
+    photo's other edges, and its pose can win on its own target's cost with the model shrunk into
+    it. The frame's own best pose, priced with the decided one on the frame and on the decided
+    pose's target, stands where it costs less: the whole car. Where the decided pose is the
+    frame's, it stays."""
+    truth = _framed(sedan, 35.0, 10.0, 0.85, 1.5)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["side"], renderer=renderer, seed=9)
+    whole = _seen_box(truth, sedan, 1.0)
+    assert whole is not None
+    part = (whole[0], whole[1], whole[0] + 0.35 * (whole[2] - whole[0]), whole[3])
+    frame = (0.0, 0.0, W - 1.0, H - 1.0)
+    options = RegistrationOptions()
+    optimizer = make_optimizer(options.optimizer)
+    first = sphere_search(photo, sedan, sedan.templates(renderer), options, renderer, optimizer,
+                          targets=[Target(frame, np.ones((H, W), bool)), Target(part, np.ones((H, W), bool))])
+    shrunk = next(p for p in first.refined if p.target == 1)
+    assert _box_iou(_seen_box(shrunk.camera, sedan, 1.0), whole) < 0.6
+    decided = replace(first, refined=[shrunk] + [p for p in first.refined if p is not shrunk])
+    chosen = _frame_choice(decided, first, photo, sedan, options, optimizer, None, None)
+    assert chosen.best.target == 0
+    assert _box_iou(_seen_box(chosen.best.camera, sedan, 1.0), whole) > 0.85
+    assert rotation_error(chosen.best.camera.R, truth.R) < 5.0
+    frame_first = replace(first, refined=sorted(first.refined, key=lambda p: (p.target, p.cost)))
+    kept = _frame_choice(frame_first, first, photo, sedan, options, optimizer, None, None)
+    assert kept.refined == frame_first.refined
 
 
 def _filling(sedan, renderer) -> tuple[np.ndarray, Camera, Camera]:

@@ -389,6 +389,9 @@ class Search(_Group):
     sphere_start_region: bool = option(True, "with a start camera and no box, the box of the start's projection "
                                        "grown to the vehicle's region GrabCut finds about the start's silhouette "
                                        "(decision 0060)")
+    sphere_frame_choice: bool = option(True, "without a hint, where the edges decide: the frame's own best pose "
+                                       "(weighed against its twin) stands where it costs less than the pose "
+                                       "decided on the frame and that pose's target together (decision 0063)")
     sphere_clutter: float = option(0.55, "cost of a photo edge outside a target's box but inside another "
                                    "target's, in the two-way chamfer of the targets", low=0.0, high=1.0)
     sphere_evaluations: int = option(200, "evaluations of each refinement's second stage", low=0)

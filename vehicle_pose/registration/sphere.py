@@ -540,15 +540,18 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     those sizes in turn, about the target of its pose, until the poses of more than half of all
     the sizes agree (or none is left), and the sizes vote (:func:`_vote`); the other sizes'
     poses are offered to the shading in the same way (the vote's first), and the first it
-    explains stands. Returns the fit, the search and which stage's pose it is (``shading`` or
-    ``structure``). ``focal_band`` as for :func:`sphere_search`; the shading fit searches the
-    focal length within it (where the shading explains the photo, it tells the focal length
-    more precisely than a rounded EXIF). ``deadline`` is offered the search's pose before the
-    polish.
+    explains stands; without a hint and with ``sphere_frame_choice``, the frame's own best pose
+    stands last where it costs less on the frame and the decided pose's target together
+    (:func:`_frame_choice`). Returns the fit, the
+    search and which stage's pose it is (``shading`` or ``structure``). ``focal_band`` as for
+    :func:`sphere_search`; the shading fit searches the focal length within it (where the
+    shading explains the photo, it tells the focal length more precisely than a rounded EXIF).
+    ``deadline`` is offered the search's pose before the polish.
     """
     templates = model.templates(renderer)
     searched = sphere_search(work, model, templates, options, renderer, optimizer, init=init, box=box,
                              progress=progress, focal_band=focal_band)
+    first = searched
     if deadline is not None:
         deadline.offer(searched.best.camera, "structure")
     polished = _shading(work, model, searched, options, renderer, optimizer, box, foreground, progress, focal_band)
@@ -599,7 +602,40 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
                 confirmed.checks["sizes_agree"] = _agreement(confirmed.best, edges)
                 return fitted, confirmed, stage
         searched = voted
+    if options.search.sphere_frame_choice and init is None and box is None:
+        searched = _frame_choice(searched, first, work, model, options, optimizer, progress, focal_band)
     return sphere_fit(work, model, searched, options, renderer, box), searched, "structure"
+
+
+def _frame_choice(searched: SphereSearch, first: SphereSearch, work: npt.NDArray[np.uint8], model: VehicleModel,
+                  options: RegistrationOptions, optimizer: Optimizer, progress: Progress | None,
+                  focal_band: tuple[float, float] | None) -> SphereSearch:
+    """The search decided by the edges, or the frame's own pose where it costs less on the frame
+    and the decided pose's target together.
+
+    Each target's poses are scored by their own target's cost, and a target that holds a lamp
+    or the number plate pays ``sphere_clutter`` for each photo edge outside it: less than the
+    whole car's pose pays for the edges a CAD model close but not exact leaves unexplained, so
+    a model shrunk onto part of the car can win. Each region's cost leans its own way (the
+    frame's towards a model that covers the clutter, a small region's towards a model shrunk
+    into it), so the two poses are priced on both: the frame target's best pose of the first
+    search (``first``), weighed against its half-turn twin on the frame as each search's best is
+    (:func:`_with_twin`), stands where its summed cost is the lower
+    (``docs/decisions/0063-the-frame-s-pose-weighed-last.md``). The choice is the last step: the
+    sizes' vote and the shading's offers are as before."""
+    Hf, Wf = work.shape[:2]
+    frame = next((k for k, t in enumerate(first.targets) if t.box == (0.0, 0.0, Wf - 1.0, Hf - 1.0)), None)
+    own = [p for p in first.refined if p.target == frame]
+    if frame is None or not own:
+        return searched
+    framed = replace(first, refined=own)
+    if options.search.sphere_twin:
+        framed = _with_twin(framed, model, options, optimizer, progress, focal_band)
+    # Both poses priced on both regions: the frame, and the target the decided pose was found in.
+    both = (first.costs[frame], first.costs[searched.best.target])
+    better = sum(c(framed.best.camera) for c in both) < sum(c(searched.best.camera) for c in both)
+    chosen = _promoted(searched, framed.best) if better else searched
+    return replace(chosen, seconds=searched.seconds + framed.seconds - first.seconds)
 
 
 def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereSearch, options: RegistrationOptions,
