@@ -166,12 +166,15 @@ def test_where_the_edges_decide_the_frame_s_pose_stands_where_the_frame_prefers_
     shrunk = next(p for p in first.refined if p.target == 1)
     assert _box_iou(_seen_box(shrunk.camera, sedan, 1.0), whole) < 0.6
     decided = replace(first, refined=[shrunk] + [p for p in first.refined if p is not shrunk])
-    chosen = _frame_choice(decided, first, photo, sedan, options, optimizer, None, None)
-    assert chosen.best.target == 0
+    # The first search's best is the frame's, its twin weighed by the edges: not refined again.
+    assert first.best.target == 0
+    weighed = _with_twin(first, sedan, options, optimizer, None, None)
+    chosen = _frame_choice(decided, first, weighed, photo, sedan, options, optimizer, None, None)
+    assert chosen.best.target == 0 and any(chosen.best is p for p in weighed.refined)
     assert _box_iou(_seen_box(chosen.best.camera, sedan, 1.0), whole) > 0.85
     assert rotation_error(chosen.best.camera.R, truth.R) < 5.0
     frame_first = replace(first, refined=sorted(first.refined, key=lambda p: (p.target, p.cost)))
-    kept = _frame_choice(frame_first, first, photo, sedan, options, optimizer, None, None)
+    kept = _frame_choice(frame_first, first, weighed, photo, sedan, options, optimizer, None, None)
     assert kept.refined == frame_first.refined
 
 

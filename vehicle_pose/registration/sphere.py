@@ -198,7 +198,7 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
     H, W = work.shape[:2]
     if box is not None:
         return [Target(box, find_vehicle(work, rect=box).mask)]
-    out = [Target((0.0, 0.0, W - 1.0, H - 1.0), np.ones((H, W), bool))]
+    out = [Target(_frame_box(work), np.ones((H, W), bool))]
     if init is not None:
         b = _seen_box(init, model, 4.0)
         if b is None:
@@ -214,6 +214,12 @@ def _targets(work: npt.NDArray[np.uint8], model: VehicleModel, init: Camera | No
         if all(_box_iou(region.box, o.box) < 0.8 for o in out):
             out.append(Target(region.box, region.mask))
     return out
+
+
+def _frame_box(work: npt.NDArray[np.uint8]) -> Box:
+    """The box of the whole working photo: the frame's target."""
+    H, W = work.shape[:2]
+    return 0.0, 0.0, W - 1.0, H - 1.0
 
 
 @dataclass(frozen=True)
@@ -567,8 +573,10 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
     votes = options.search.sphere_votes
     if not votes:
         searched = decided(searched)
+        weighed = searched
     else:
         searches, edges = [searched], [decided(searched)]
+        weighed = edges[0]
         scored = [_search_size(work, options)]  # the size each search scored at (never enlarged)
         for size in votes:
             sized = options.replace(sphere_size=int(size))
@@ -603,13 +611,13 @@ def sphere_pose(work: npt.NDArray[np.uint8], model: VehicleModel, options: Regis
                 return fitted, confirmed, stage
         searched = voted
     if options.search.sphere_frame_choice and init is None and box is None:
-        searched = _frame_choice(searched, first, work, model, options, optimizer, progress, focal_band)
+        searched = _frame_choice(searched, first, weighed, work, model, options, optimizer, progress, focal_band)
     return sphere_fit(work, model, searched, options, renderer, box), searched, "structure"
 
 
-def _frame_choice(searched: SphereSearch, first: SphereSearch, work: npt.NDArray[np.uint8], model: VehicleModel,
-                  options: RegistrationOptions, optimizer: Optimizer, progress: Progress | None,
-                  focal_band: tuple[float, float] | None) -> SphereSearch:
+def _frame_choice(searched: SphereSearch, first: SphereSearch, weighed: SphereSearch, work: npt.NDArray[np.uint8],
+                  model: VehicleModel, options: RegistrationOptions, optimizer: Optimizer,
+                  progress: Progress | None, focal_band: tuple[float, float] | None) -> SphereSearch:
     """The search decided by the edges, or the frame's own pose where it costs less on the frame
     and the decided pose's target together.
 
@@ -622,15 +630,21 @@ def _frame_choice(searched: SphereSearch, first: SphereSearch, work: npt.NDArray
     search (``first``), weighed against its half-turn twin on the frame as each search's best is
     (:func:`_with_twin`), stands where its summed cost is the lower
     (``docs/decisions/0063-the-frame-s-pose-weighed-last.md``). The choice is the last step: the
-    sizes' vote and the shading's offers are as before."""
-    Hf, Wf = work.shape[:2]
-    frame = next((k for k, t in enumerate(first.targets) if t.box == (0.0, 0.0, Wf - 1.0, Hf - 1.0)), None)
+    sizes' vote and the shading's offers are as before. ``weighed`` is the first search as the
+    edges decided it (its best pose weighed against its twin): where that best pose is the
+    frame's, its twin is not refined again."""
+    frame = next((k for k, t in enumerate(first.targets) if t.box == _frame_box(work)), None)
     own = [p for p in first.refined if p.target == frame]
     if frame is None or not own:
         return searched
-    framed = replace(first, refined=own)
-    if options.search.sphere_twin:
-        framed = _with_twin(framed, model, options, optimizer, progress, focal_band)
+    if options.search.sphere_twin and first.best.target == frame:
+        # The first search's best pose is the frame's own: the edges have weighed it against its
+        # twin already (the same refinement from the same pose).
+        framed = replace(weighed, refined=[p for p in weighed.refined if p.target == frame], seconds=first.seconds)
+    else:
+        framed = replace(first, refined=own)
+        if options.search.sphere_twin:
+            framed = _with_twin(framed, model, options, optimizer, progress, focal_band)
     # Both poses priced on both regions: the frame, and the target the decided pose was found in.
     both = (first.costs[frame], first.costs[searched.best.target])
     better = sum(c(framed.best.camera) for c in both) < sum(c(searched.best.camera) for c in both)
