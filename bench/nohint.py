@@ -11,7 +11,8 @@ Success = mean vertex projection error <= 5 px at 640 px width. A flagged result
 ``failed`` set; precision = flagged results that were wrong / flagged results, recall = wrong
 results flagged / wrong results. Writes bench/results/nohint_<part>.json and, for the synthetic
 and photoreal parts, a contact sheet nohint_<part>.png of each case's start (the search's) and
-final outline.
+final outline; the photoreal part's report is named after another folder of cases given with
+``--shared`` (``nohint_bench-partial`` for ``../shared/bench-partial``).
 """
 
 from __future__ import annotations
@@ -161,9 +162,11 @@ def main() -> None:
         if (args.shared / "cases").is_dir():
             data = photoreal(args.shared, options, oracle=args.oracle_mask)
             tiles = data.pop("tiles")
-            print(write_report("nohint_photoreal" + suffix,
-                               data | {"options": options.flat(), "oracle_mask": args.oracle_mask}))
-            print(write_sheet("nohint_photoreal" + suffix, tiles))
+            # The renders' own folder names the report, as in bench/accuracy.py: another set of
+            # cases (../shared/bench-partial) does not overwrite the photoreal one.
+            name = "nohint_" + ("photoreal" if args.shared.resolve().name == "bench" else args.shared.resolve().name)
+            print(write_report(name + suffix, data | {"options": options.flat(), "oracle_mask": args.oracle_mask}))
+            print(write_sheet(name + suffix, tiles))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")
     if args.part in ("identify", "all"):
