@@ -645,11 +645,15 @@ def _frame_choice(searched: SphereSearch, first: SphereSearch, weighed: SphereSe
         framed = replace(first, refined=own)
         if options.search.sphere_twin:
             framed = _with_twin(framed, model, options, optimizer, progress, focal_band)
-    # Both poses priced on both regions: the frame, and the target the decided pose was found in.
-    both = (first.costs[frame], first.costs[searched.best.target])
+    seconds = searched.seconds + framed.seconds - first.seconds
+    if framed.best is searched.best:
+        return replace(searched, seconds=seconds)  # the decided pose is the frame's own
+    # Both poses priced on both regions: the frame, and the target the decided pose was found in
+    # (one region, priced once, where that target is the frame).
+    both = [first.costs[k] for k in {frame, searched.best.target}]
     better = sum(c(framed.best.camera) for c in both) < sum(c(searched.best.camera) for c in both)
     chosen = _promoted(searched, framed.best) if better else searched
-    return replace(chosen, seconds=searched.seconds + framed.seconds - first.seconds)
+    return replace(chosen, seconds=seconds)
 
 
 def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereSearch, options: RegistrationOptions,
