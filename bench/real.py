@@ -1,7 +1,7 @@
 """Real photos: rotation error against human pose annotations, from a start camera, a box alone or no hint.
 
 Usage: .venv/bin/python bench/real.py [--start init.json|init_box.json|gt|box|none] [--no-box]
-       [--half a|b] [--stretch SX,SY,SZ] [--mirror] [--cases N] [--shared ../shared/real]
+       [--half a|b] [--stretch SX,SY,SZ] [--mirror] [--scale S] [--cases N] [--shared ../shared/real]
        [--option KEY=VALUE ...] [--tag TAG]
 
 The cases of ``../shared/real`` (real photos with the exact CAD model their annotations were made
@@ -25,6 +25,9 @@ its file's axes, a CAD model close to the car but not exact (the annotated rotat
 ``--mirror`` registers each photo turned left to right, with its start, box and annotation mirrored
 to match: the same cars seen in a mirror, photos that no constant was chosen on (the templates, the
 searches' placements and the images' pixels all differ; the CAD model is left-right symmetric).
+``--scale`` registers each photo resized by that factor, with its start and box to match: the same
+cars photographed larger or smaller (every size-dependent step of the engine meets other sizes;
+the engine's working size is at most ``pyramid.max_size`` either way).
 """
 
 from __future__ import annotations
@@ -142,6 +145,23 @@ def mirrored(photo: np.ndarray, R_gt: np.ndarray, init: dict,
     return np.ascontiguousarray(photo[:, ::-1]), F @ R_gt @ M, out
 
 
+def rescaled(photo: np.ndarray, init: dict, factor: float) -> tuple[np.ndarray, dict]:
+    """The photo resized by ``factor`` (pixel area averaged when it shrinks, bicubic when it
+    grows), with its start file to match: the start camera for the new size (pixel centres kept,
+    :meth:`Camera.scaled`) and the box's corners moved the same way. The rotation is unchanged."""
+    H, W = photo.shape[:2]
+    w, h = max(8, round(W * factor)), max(8, round(H * factor))
+    sx, sy = w / W, h / H
+    out = dict(init)
+    if "bbox" in init:
+        x0, y0, x1, y1 = (float(v) for v in init["bbox"])
+        out["bbox"] = [(x0 + 0.5) * sx - 0.5, (y0 + 0.5) * sy - 0.5, (x1 + 0.5) * sx - 0.5, (y1 + 0.5) * sy - 0.5]
+    if "K" in init:
+        out.update(Camera.from_dict(init).scaled(w, h).to_dict())
+    how = cv2.INTER_AREA if factor < 1.0 else cv2.INTER_CUBIC
+    return cv2.resize(photo, (w, h), interpolation=how), out
+
+
 def elevation(R: np.ndarray, model: VehicleModel) -> float:
     """The elevation (degrees) of a view of rotation ``R`` (model to camera): the angle between
     the model's ground plane (its up axis as the view-sphere templates measure it,
@@ -216,7 +236,8 @@ def halves(shared: Path) -> dict[str, str]:
 
 def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
         use_box: bool = True, half: str | None = None,
-        stretch: tuple[float, float, float] | None = None, mirror: bool = False) -> tuple[dict, np.ndarray]:
+        stretch: tuple[float, float, float] | None = None, mirror: bool = False,
+        scale: float = 1.0) -> tuple[dict, np.ndarray]:
     models = load_models(shared, stretch)
     renderer = Renderer()
     runs, tiles = [], []
@@ -230,6 +251,8 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
         hint = json.loads((case / ("init.json" if start_name in ("gt", "box", "none") else start_name)).read_text())
         if mirror:
             photo, R_gt, hint = mirrored(photo, R_gt, hint, model)
+        if scale != 1.0:
+            photo, hint = rescaled(photo, hint, scale)
         bbox = hint["bbox"]
         init, box = None, None
         if start_name == "box":
@@ -283,21 +306,24 @@ def run(shared: Path, start_name: str, options: RegistrationOptions, cases: int 
 
 
 def report_name(shared: Path, start: str, tag: str, *, no_box: bool = False, half: str | None = None,
-                stretched: bool = False, mirror: bool = False) -> str:
+                stretched: bool = False, mirror: bool = False, scale: float = 1.0) -> str:
     """The name of a run's report and contact sheet: the case set, the start, then what differs."""
     return (f"{shared.resolve().name}_" + start.removesuffix(".json") + ("_nobox" if no_box else "")
             + (f"_{half}" if half else "") + ("_stretched" if stretched else "") + ("_mirror" if mirror else "")
-            + (f"_{tag}" if tag else ""))
+            + (f"_scale{scale:g}" if scale != 1.0 else "") + (f"_{tag}" if tag else ""))
 
 
 def run_and_write(name: str, shared: Path, start_name: str, options: RegistrationOptions, cases: int | None,
                   use_box: bool = True, half: str | None = None,
-                  stretch: tuple[float, float, float] | None = None, mirror: bool = False) -> Path:
-    """:func:`run`, then its report (with the options, the box, the stretch and the mirror) and contact sheet
+                  stretch: tuple[float, float, float] | None = None, mirror: bool = False,
+                  scale: float = 1.0) -> Path:
+    """:func:`run`, then its report (with the options, the box, the stretch, the mirror and the scale) and contact sheet
     written under ``name``, both paths printed; the report's path."""
-    data, tiles = run(shared, start_name, options, cases, use_box=use_box, half=half, stretch=stretch, mirror=mirror)
+    data, tiles = run(shared, start_name, options, cases, use_box=use_box, half=half, stretch=stretch, mirror=mirror,
+                      scale=scale)
     data["stretch"] = stretch
     data["mirror"] = mirror
+    data["scale"] = scale
     data["options"] = options.flat()
     data["box"] = use_box
     path = write_report(name, data)
@@ -321,6 +347,8 @@ def main() -> None:
     ap.add_argument("--no-box", action="store_true", help="give only the start camera, not the start file's box")
     ap.add_argument("--mirror", action="store_true",
                     help="register each photo turned left to right, its start, box and annotation to match")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="register each photo resized by this factor, its start and box to match")
     ap.add_argument("--tag", default="", help="suffix of the report's name")
     args = ap.parse_args()
     if not (args.shared / "cases").is_dir():
@@ -328,12 +356,14 @@ def main() -> None:
         return
     options = parse_options(args.option)
     name = report_name(args.shared, args.start, args.tag, no_box=args.no_box, half=args.half,
-                       stretched=args.stretch is not None, mirror=args.mirror)
+                       stretched=args.stretch is not None, mirror=args.mirror, scale=args.scale)
+    if args.scale <= 0:
+        raise SystemExit("--scale takes a positive factor")
     stretch = None if args.stretch is None else tuple(float(v) for v in args.stretch.split(","))
     if stretch is not None and len(stretch) != 3:
         raise SystemExit("--stretch takes three factors SX,SY,SZ")
     run_and_write(name, args.shared, args.start, options, args.cases, use_box=not args.no_box, half=args.half,
-                  stretch=stretch, mirror=args.mirror)  # type: ignore[arg-type]
+                  stretch=stretch, mirror=args.mirror, scale=args.scale)  # type: ignore[arg-type]
 
 
 if __name__ == "__main__":
