@@ -2,11 +2,13 @@
 
 Usage: .venv/bin/python bench/accuracy.py [--part sweep|losses|photoreal|all] [--cases N]
        [--shared ../shared/bench|../shared/bench-partial] [--start init.json|init_hard.json|box] [--no-box]
-       [--oracle-mask] [--option KEY=VALUE ...] [--tag TAG]
+       [--oracle-mask] [--scale S] [--option KEY=VALUE ...] [--tag TAG]
 Success = mean vertex projection error <= 5 px at 640 px width. Prints tables and writes
 bench/results/accuracy_<part>.json; the photoreal part also a contact sheet of each case's start
 (left) and final (right) outline, accuracy_photoreal.png (accuracy_bench-partial.png for the
 cases cut by the frame). ``--start box`` gives the start file's box alone, no start camera.
+``--scale`` registers each photoreal case resized by that factor, its true and start cameras, box
+and mask to match (the error is still measured at 640 px width).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import argparse
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from vehicle_pose import RegistrationOptions, register
@@ -30,6 +33,8 @@ from common import (
     perturbed,
     photoreal_cases,
     projection_error,
+    rescaled_box,
+    rescaled_photo,
     table,
     write_report,
     write_sheet,
@@ -127,7 +132,7 @@ def oracle_mask(shared: Path, case: Path, gt: dict) -> np.ndarray:
 
 
 def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracle: bool = False,
-              use_box: bool = True) -> dict:
+              use_box: bool = True, scale: float = 1.0) -> dict:
     renderer, out, tiles = Renderer(), [], []
     for case, gt, model in photoreal_cases(shared):
         truth = Camera.from_dict(gt)
@@ -136,6 +141,15 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
         mask = oracle_mask(shared, case, gt) if oracle else None
         box = hint.get("bbox") if use_box else None
         photo = load_photo(case / "photo.jpg")
+        if scale != 1.0:
+            H, W = photo.shape[:2]
+            photo = rescaled_photo(photo, scale)
+            h, w = photo.shape[:2]
+            truth = truth.scaled(w, h)
+            start = None if start is None else start.scaled(w, h)
+            box = None if box is None else rescaled_box(box, w / W, h / H)
+            if mask is not None:
+                mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
         r = run_one(model, renderer, photo, truth, start, options, foreground=mask, bbox=box)
         tiles.append(_tiles(photo, model, renderer, r, case.name))
         r["case"] = case.name
@@ -164,6 +178,8 @@ def main() -> None:
                     help="photoreal: give the true mask instead of GrabCut (a ceiling)")
     ap.add_argument("--no-box", action="store_true",
                     help="photoreal: give only the start camera, not the start file's box")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="photoreal: register each case resized by this factor, its cameras, box and mask to match")
     ap.add_argument("--tag", default="", help="suffix of the photoreal report's name")
     args = ap.parse_args()
     if args.part in ("sweep", "all"):
@@ -174,13 +190,18 @@ def main() -> None:
         if (args.shared / "cases").is_dir():
             name = (f"accuracy_{'photoreal' if args.shared.resolve().name == 'bench' else args.shared.resolve().name}"
                     + ("_hard" if "hard" in args.start else "") + ("_box" if args.start == "box" else "")
-                    + ("_nobox" if args.no_box else "") + (f"_{args.tag}" if args.tag else ""))
+                    + ("_nobox" if args.no_box else "") + (f"_scale{args.scale:g}" if args.scale != 1.0 else "")
+                    + (f"_{args.tag}" if args.tag else ""))
             options = parse_options(args.option)
-            data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask, use_box=not args.no_box)
+            if args.scale <= 0:
+                raise SystemExit("--scale takes a positive factor")
+            data = photoreal(args.shared, args.start, options, oracle=args.oracle_mask, use_box=not args.no_box,
+                             scale=args.scale)
             tiles = data.pop("tiles")
             data["options"] = options.flat()
             data["oracle_mask"] = args.oracle_mask
             data["box"] = not args.no_box
+            data["scale"] = args.scale
             print(write_report(name, data))
             print(write_sheet(name, tiles))
         else:

@@ -73,6 +73,20 @@ def same_frames(a: list[Frame], b: list[Frame]) -> bool:
                and np.array_equal(f.covered(f.attrs), g.covered(g.attrs)) for f, g in zip(a, b, strict=True))
 
 
+def rescaled_photo(photo: np.ndarray, factor: float) -> np.ndarray:
+    """The photo resized by ``factor`` (pixel areas averaged when it shrinks, bicubic when it
+    grows), at least 8 pixels a side: the same scene photographed larger or smaller."""
+    H, W = photo.shape[:2]
+    size = (max(8, round(W * factor)), max(8, round(H * factor)))
+    return cv2.resize(photo, size, interpolation=cv2.INTER_AREA if factor < 1.0 else cv2.INTER_CUBIC)
+
+
+def rescaled_box(box: list[float], sx: float, sy: float) -> list[float]:
+    """A box ``x0, y0, x1, y1`` (pixel centres at integers) in a photo resized by ``sx``, ``sy``."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    return [(x0 + 0.5) * sx - 0.5, (y0 + 0.5) * sy - 0.5, (x1 + 0.5) * sx - 0.5, (y1 + 0.5) * sy - 0.5]
+
+
 def projection_error(points: np.ndarray, est: Camera, truth: Camera) -> float:
     """Mean vertex projection distance in pixels, scaled to a 640-pixel-wide image."""
     return _projection_error(points, est, truth, width=640.0)

@@ -1,7 +1,7 @@
 """No-hint registration: success, failure-flag quality and time, with no start camera and no box.
 
 Usage: .venv/bin/python bench/nohint.py [--part synthetic|photoreal|identify|all] [--cases N]
-       [--shared ../shared/bench] [--option KEY=VALUE ...] [--oracle-mask] [--tag TAG]
+       [--shared ../shared/bench] [--option KEY=VALUE ...] [--oracle-mask] [--scale S] [--tag TAG]
 
 synthetic: the five shipped body types at random views (azimuth 0-360, elevation 3-30 degrees,
 focal 0.8-2.5 image widths, the vehicle 40-80 % of the width, fully in view), the four synthetic
@@ -12,7 +12,9 @@ Success = mean vertex projection error <= 5 px at 640 px width. A flagged result
 results flagged / wrong results. Writes bench/results/nohint_<part>.json and, for the synthetic
 and photoreal parts, a contact sheet nohint_<part>.png of each case's start (the search's) and
 final outline; the photoreal part's report is named after another folder of cases given with
-``--shared`` (``nohint_bench-partial`` for ``../shared/bench-partial``).
+``--shared`` (``nohint_bench-partial`` for ``../shared/bench-partial``). ``--scale`` registers each
+photoreal case resized by that factor, its true camera and mask to match (the error is still
+measured at 640 px width).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import argparse
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from vehicle_pose import RegistrationOptions, register
@@ -31,7 +34,16 @@ from vehicle_pose.registration.identify import identify
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, random_framed_view, synthesize
 
-from common import overlay_pair, parse_options, photoreal_cases, projection_error, table, write_report, write_sheet
+from common import (
+    overlay_pair,
+    parse_options,
+    photoreal_cases,
+    projection_error,
+    rescaled_photo,
+    table,
+    write_report,
+    write_sheet,
+)
 
 SUCCESS_PX = 5.0
 
@@ -99,12 +111,18 @@ def synthetic(n: int, options: RegistrationOptions) -> dict:
     return {"rows": rows, "runs": runs, "tiles": tiles}
 
 
-def photoreal(shared: Path, options: RegistrationOptions, oracle: bool = False) -> dict:
+def photoreal(shared: Path, options: RegistrationOptions, oracle: bool = False, scale: float = 1.0) -> dict:
     renderer, runs, tiles = Renderer(), [], []
     for case, gt, model in photoreal_cases(shared):
         mask = np.load(case / "mask.npy") if oracle else None
-        r = _run(model, renderer, load_photo(case / "photo.jpg"), Camera.from_dict(gt), options, mask, tiles,
-                 f"{case.name} {model.info.id}")
+        photo, truth = load_photo(case / "photo.jpg"), Camera.from_dict(gt)
+        if scale != 1.0:
+            photo = rescaled_photo(photo, scale)
+            h, w = photo.shape[:2]
+            truth = truth.scaled(w, h)
+            if mask is not None:
+                mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+        r = _run(model, renderer, photo, truth, options, mask, tiles, f"{case.name} {model.info.id}")
         r |= {"case": case.name, "model": model.info.id}
         _print(r, f"{case.name} {model.info.id}")
         runs.append(r)
@@ -149,6 +167,8 @@ def main() -> None:
                     help="a RegistrationOptions field, e.g. starts=6 (repeatable)")
     ap.add_argument("--oracle-mask", action="store_true",
                     help="photoreal: give the true mask as the region and foreground (a ceiling)")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="photoreal: register each case resized by this factor, its camera and mask to match")
     ap.add_argument("--tag", default="", help="suffix of the report's name")
     args = ap.parse_args()
     options = parse_options(args.option)
@@ -160,12 +180,16 @@ def main() -> None:
         print(write_sheet("nohint_synthetic" + suffix, tiles))
     if args.part in ("photoreal", "all"):
         if (args.shared / "cases").is_dir():
-            data = photoreal(args.shared, options, oracle=args.oracle_mask)
+            if args.scale <= 0:
+                raise SystemExit("--scale takes a positive factor")
+            data = photoreal(args.shared, options, oracle=args.oracle_mask, scale=args.scale)
             tiles = data.pop("tiles")
             # The renders' own folder names the report, as in bench/accuracy.py: another set of
             # cases (../shared/bench-partial) does not overwrite the photoreal one.
             name = "nohint_" + ("photoreal" if args.shared.resolve().name == "bench" else args.shared.resolve().name)
-            print(write_report(name + suffix, data | {"options": options.flat(), "oracle_mask": args.oracle_mask}))
+            name += f"_scale{args.scale:g}" if args.scale != 1.0 else ""
+            print(write_report(name + suffix, data | {"options": options.flat(), "oracle_mask": args.oracle_mask,
+                                                      "scale": args.scale}))
             print(write_sheet(name + suffix, tiles))
         else:
             print(f"no photoreal cases at {args.shared}; skipped")

@@ -48,7 +48,16 @@ from vehicle_pose.photo import load_photo
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.search.views import upright_axes
 
-from common import RESULTS, overlay_pair, parse_options, table, write_report, write_sheet
+from common import (
+    RESULTS,
+    overlay_pair,
+    parse_options,
+    rescaled_box,
+    rescaled_photo,
+    table,
+    write_report,
+    write_sheet,
+)
 
 WORSE_DEG = 2.0
 """A case that ends more than this many degrees further from the annotation than it started."""
@@ -146,20 +155,18 @@ def mirrored(photo: np.ndarray, R_gt: np.ndarray, init: dict,
 
 
 def rescaled(photo: np.ndarray, init: dict, factor: float) -> tuple[np.ndarray, dict]:
-    """The photo resized by ``factor`` (pixel area averaged when it shrinks, bicubic when it
-    grows), with its start file to match: the start camera for the new size (pixel centres kept,
-    :meth:`Camera.scaled`) and the box's corners moved the same way. The rotation is unchanged."""
+    """The photo resized by ``factor`` (:func:`rescaled_photo`), with its start file to match: the
+    start camera for the new size (pixel centres kept, :meth:`Camera.scaled`) and the box's
+    corners moved the same way. The rotation is unchanged."""
     H, W = photo.shape[:2]
-    w, h = max(8, round(W * factor)), max(8, round(H * factor))
-    sx, sy = w / W, h / H
+    out_photo = rescaled_photo(photo, factor)
+    h, w = out_photo.shape[:2]
     out = dict(init)
     if "bbox" in init:
-        x0, y0, x1, y1 = (float(v) for v in init["bbox"])
-        out["bbox"] = [(x0 + 0.5) * sx - 0.5, (y0 + 0.5) * sy - 0.5, (x1 + 0.5) * sx - 0.5, (y1 + 0.5) * sy - 0.5]
+        out["bbox"] = rescaled_box(init["bbox"], w / W, h / H)
     if "K" in init:
         out.update(Camera.from_dict(init).scaled(w, h).to_dict())
-    how = cv2.INTER_AREA if factor < 1.0 else cv2.INTER_CUBIC
-    return cv2.resize(photo, (w, h), interpolation=how), out
+    return out_photo, out
 
 
 def elevation(R: np.ndarray, model: VehicleModel) -> float:
