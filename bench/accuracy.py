@@ -17,13 +17,12 @@ import argparse
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.geometry.camera import Camera, look_at_camera
 from vehicle_pose.model.library import ModelLibrary
-from vehicle_pose.photo import load_photo
+from vehicle_pose.photo import load_photo, resized_mask
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
@@ -149,7 +148,7 @@ def photoreal(shared: Path, start_name: str, options: RegistrationOptions, oracl
             start = None if start is None else start.scaled(w, h)
             box = None if box is None else rescaled_box(box, w / W, h / H)
             if mask is not None:
-                mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+                mask = resized_mask(mask, w, h)
         r = run_one(model, renderer, photo, truth, start, options, foreground=mask, bbox=box)
         tiles.append(_tiles(photo, model, renderer, r, case.name))
         r["case"] = case.name

@@ -23,13 +23,12 @@ import argparse
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.model.library import ModelLibrary
-from vehicle_pose.photo import load_photo
+from vehicle_pose.photo import load_photo, resized_mask
 from vehicle_pose.registration.identify import identify
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.render.synth import LIGHTINGS, random_framed_view, synthesize
@@ -121,7 +120,7 @@ def photoreal(shared: Path, options: RegistrationOptions, oracle: bool = False, 
             h, w = photo.shape[:2]
             truth = truth.scaled(w, h)
             if mask is not None:
-                mask = cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+                mask = resized_mask(mask, w, h)
         r = _run(model, renderer, photo, truth, options, mask, tiles, f"{case.name} {model.info.id}")
         r |= {"case": case.name, "model": model.info.id}
         _print(r, f"{case.name} {model.info.id}")
