@@ -10,6 +10,7 @@ from vehicle_pose import RegistrationOptions, register
 from vehicle_pose.errors import BlankPhotoError, CameraError, PoseError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.parametrize import ViewParams
+from vehicle_pose.photo import is_gray
 from vehicle_pose.render.synth import LIGHTINGS, synthesize
 
 from helpers import perturbed, projection_error, view
@@ -175,3 +176,18 @@ def test_a_reduced_copy_of_the_photo_registers_in_the_photos_own_pixels(sedan, r
     assert result.foreground.shape == (960, 1280)
     with pytest.raises(ValueError, match="not a reduced"):
         register(small, sedan, init_camera=truth, renderer=renderer, photo_size=(1280, 720))
+
+
+def test_a_colour_loss_is_judged_on_the_luminance(sedan, renderer):
+    # With ``color`` the fit minimises the loss over the three colour channels, which also
+    # counts the chroma no pose explains (noise on a single-coloured car): whether the shading
+    # explains the photo is judged on the luminance, where its thresholds are set.
+    truth = view(sedan, 130.0, 15.0, focal=1000.0)
+    photo, _ = synthesize(sedan.mesh, truth, lighting=LIGHTINGS["front"], renderer=renderer, seed=0)
+    assert not is_gray(photo)
+    start = perturbed(truth, 0)
+    result = register(photo, sedan, init_camera=start, renderer=renderer, options=RegistrationOptions(color=True))
+    last = result.levels[-1]
+    assert last.luminance is not None and last.luminance < 0.05 < 0.15 < last.loss / 3
+    assert result.pose_stage == "shading" and result.checks["loss"] == last.luminance
+    assert projection_error(sedan, result.camera, truth) < 1.0

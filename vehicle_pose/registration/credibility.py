@@ -8,7 +8,7 @@ import numpy.typing as npt
 
 from vehicle_pose.metrics import iou
 from vehicle_pose.model.library import VehicleModel
-from vehicle_pose.registration.fit import Fit, loss_share
+from vehicle_pose.registration.fit import Fit
 from vehicle_pose.registration.segmentation import silhouette
 from vehicle_pose.render.renderer import Renderer
 from vehicle_pose.segment.region import VehicleRegion
@@ -132,9 +132,9 @@ def fit_checks(
 ) -> dict[str, float]:
     """The final pose's silhouette against the region found before any pose was known
     (``region_iou``) and against its own foreground (``foreground_iou``), and its loss over the
-    loss's maximum (``loss``; the maximum is 3 for a colour loss on a colour photo)."""
+    loss's maximum (``loss``), on the photo's luminance (:meth:`Fit.share`)."""
     final = silhouette(model, fitted.camera, renderer)
     checks = {} if region is None else {"region_iou": iou(final, region.mask)}
     checks["foreground_iou"] = iou(final, fitted.foreground)
-    checks["loss"] = loss_share(fitted.loss, work, color)
+    checks["loss"] = fitted.share(work, color)
     return checks

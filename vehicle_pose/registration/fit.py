@@ -22,7 +22,7 @@ from vehicle_pose.errors import CameraError, PoseError
 from vehicle_pose.geometry.camera import Camera
 from vehicle_pose.geometry.parametrize import Parametrization, SearchFrame, ViewParams, make_parametrization
 from vehicle_pose.geometry.pose import Side, visible_side
-from vehicle_pose.loss.alternatives import BoundLoss, make_loss
+from vehicle_pose.loss.alternatives import make_loss
 from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.loss.invariant import make_target
 from vehicle_pose.model.library import VehicleModel
@@ -98,9 +98,10 @@ class FitPlan:
             return None
         return float(np.sqrt(self.focal_band[0] * self.focal_band[1]))
 
-    def screens(self, loss: float, work: npt.NDArray[np.uint8], color: bool) -> bool:
-        """Whether a first level ending at ``loss`` ends the fit (above the ``screen``)."""
-        return self.screen is not None and loss_share(loss, work, color) > self.screen
+    def screens(self, share: float) -> bool:
+        """Whether a first level ending at ``share`` (its loss over the loss's maximum, on the
+        luminance: :meth:`Fit.share`) ends the fit (above the ``screen``)."""
+        return self.screen is not None and share > self.screen
 
 
 @dataclass
@@ -121,6 +122,17 @@ class Fit:
     @property
     def objective(self) -> float:
         return self.levels[-1].objective
+
+    def share(self, work: npt.NDArray[np.uint8], color: bool) -> float:
+        """How far the shading is from explaining the photo: the final loss over its maximum,
+        on the photo's luminance. The thresholds that judge it (``shading_screen``,
+        ``shading_trust``, ``shading_polish``) are set on the luminance loss; a colour loss
+        (``color``) also counts the photo's chroma, which on a grey or single-coloured car is
+        noise that no pose explains (a render's colour loss over its maximum is 0.5-0.7 at the
+        true pose, its luminance loss 0.003-0.014), so the luminance's is taken where the fit
+        had one."""
+        last = self.levels[-1]
+        return last.luminance if last.luminance is not None else loss_share(last.loss, work, color)
 
 
 def loss_share(loss: float, work: npt.NDArray[np.uint8], color: bool) -> float:
@@ -156,14 +168,14 @@ def probe_factors(camera: Camera, options: RegistrationOptions) -> list[float]:
     return factors
 
 
-def _screened_out(plan: FitPlan, run: tuple[OptimizeResult, Parametrization], loss_fn: BoundLoss,
-                  renderer: Renderer, mesh: Mesh, work: npt.NDArray[np.uint8], color: bool) -> bool:
+def _screened_out(plan: FitPlan, run: tuple[OptimizeResult, Parametrization], share_of: Callable[[Frame], float],
+                  renderer: Renderer, mesh: Mesh) -> bool:
     """Whether ``run``'s pose is above the plan's screen (the fit will end there); renders it
     only where the plan has a screen."""
     if plan.screen is None:
         return False
     res, params = run
-    return plan.screens(float(loss_fn(renderer.render(mesh, params.camera(res.x)))), work, color)
+    return plan.screens(share_of(renderer.render(mesh, params.camera(res.x))))
 
 
 def search_frame(model: VehicleModel, side: Side, pivot: float,
@@ -217,6 +229,7 @@ def fit(
     grabcut_seconds = time.perf_counter() - t
 
     terms, budgets = options.terms, options.budgets
+    colour = options.color and not is_gray(work)
     camera = start
     levels: list[LevelReport] = []
     # The box term's points, sampled once per fit and only when the term is on (the no-hint
@@ -233,9 +246,18 @@ def fit(
         # never reach a pixel but cost the rasteriser as much as visible ones.
         mesh = model.exterior(face_budget(float(seed.sum()) * (w * h) / (Wf * Hf), options.pyramid), renderer)
         level_fg = resized_mask(foreground, w, h)
-        target = make_target(resized(work, w, h), level_fg, color=options.color,
-                             weights=doubt_weights(level_fg, region, options.segmentation.doubt_weight))
+        level_work = resized(work, w, h)
+        weights = doubt_weights(level_fg, region, options.segmentation.doubt_weight)
+        target = make_target(level_work, level_fg, color=options.color, weights=weights)
         loss_fn = make_loss(options.loss, target)
+        # A colour loss is judged on the luminance (Fit.share): the same loss on the gray photo.
+        luma_fn = make_loss(options.loss, make_target(level_work, level_fg, color=False, weights=weights)) \
+            if colour else None
+
+        def share_of(rendered: Frame) -> float:
+            if luma_fn is not None:
+                return float(luma_fn(rendered))
+            return loss_share(float(loss_fn(rendered)), work, options.color)
         edge_fn = None
         if plan.edge_weight > 0:
             edge_fn = EdgeLoss(resized(work, w, h), foreground=target.foreground, crease=terms.edge_crease)
@@ -281,7 +303,9 @@ def fit(
                 if screening:
                     if not lowest or value < lowest[0][0]:
                         lowest[:] = [(value, shading, cam)]
-                    if counter[0] == plan.screen_after and plan.screens(lowest[0][1], work, options.color):
+                    if counter[0] == plan.screen_after and plan.screens(
+                            share_of(renderer.render(mesh, lowest[0][2])) if colour
+                            else loss_share(lowest[0][1], work, options.color)):
                         raise _Screened
                 return value
 
@@ -307,15 +331,16 @@ def fit(
             # the-first-level.md), and the caller has another way to the pose.
             objective_value, shading, best = lowest[0]
             camera = best.scaled(Wf, Hf)
+            luminance = share_of(renderer.render(mesh, best)) if colour else None
             levels.append(LevelReport(w, h, mesh.n_faces, counter[0], 0, shading, time.perf_counter() - t,
-                                      objective_value))
+                                      objective_value, luminance))
             if deadline is not None:
                 deadline.offer(camera, "shading")
             if progress is not None:
                 progress(stage, counter[0], objective_value)
             return Fit(camera, levels, foreground, grabcut_seconds, screened=True)
         if li == 0 and plan.spread > 0 and len(sizes) > 1 and plan.focal_band is None and not _screened_out(
-                plan, runs[0], loss_fn, renderer, mesh, work, options.color):
+                plan, runs[0], share_of, renderer, mesh):
             # A rough start (5-15 degrees, the focal length a third off) can lie beyond the
             # simplex's basin, most of all where the frame cuts the car: an evolution strategy
             # spread about as far as the start may be off searches beside it, where evaluations
@@ -356,13 +381,15 @@ def fit(
         loss = res.fun
         if edge_fn is not None or level_box is not None or plan.prior_lens is not None:
             loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
+        luminance = share_of(renderer.render(mesh, camera.scaled(w, h))) if colour else None
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t,
-                                  res.fun))
+                                  res.fun, luminance))
         if deadline is not None:
             deadline.offer(camera, "shading")
         if progress is not None:
             progress(stage, res.evaluations, res.fun)
-        if li == 0 and len(sizes) > 1 and plan.screens(loss, work, options.color):
+        if li == 0 and len(sizes) > 1 and plan.screens(
+                luminance if luminance is not None else loss_share(loss, work, options.color)):
             return Fit(camera, levels, foreground, grabcut_seconds, screened=True)
         if segment_again and li < len(sizes) - 1:
             t = time.perf_counter()

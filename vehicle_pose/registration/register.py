@@ -20,7 +20,7 @@ from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.photo import ExifFocal, resized, resized_mask
 from vehicle_pose.registration.credibility import confidence, fit_checks
 from vehicle_pose.registration.deadline import Deadline
-from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit, loss_share
+from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
 from vehicle_pose.registration.hypotheses import photo_pose
 from vehicle_pose.registration.nohint import search
 from vehicle_pose.registration.options import RegistrationOptions
@@ -195,7 +195,7 @@ def register(
         found = fit(work, model, start, options, plan, renderer, optimizer, progress, fg, box=rect, deadline=watch)
         spent, grabcut_seconds = [found], found.grabcut_seconds
         timings["shading"] = sum(level.seconds for level in found.levels)
-        if elsewhere and loss_share(found.loss, work, options.color) > trust:
+        if elsewhere and found.share(work, options.color) > trust:
             # The shading does not explain the photo (real paint and glass mirror their
             # surroundings): the pose is found on the photo's edges instead, by the view-sphere
             # search narrowed to the views near the start, the start refitted to the client's box

@@ -20,7 +20,9 @@ __all__ = ["LevelReport", "RegistrationResult"]
 @dataclass(frozen=True)
 class LevelReport:
     """What one pyramid level did. ``loss`` is the named loss at the level's pose,
-    ``objective`` what the search minimised: the loss plus the edge and box terms."""
+    ``objective`` what the search minimised: the loss plus the edge and box terms;
+    ``luminance``, where the loss is a colour loss, the same loss on the photo's luminance at
+    that pose (None where the loss is the luminance's already)."""
 
     width: int
     height: int
@@ -30,6 +32,7 @@ class LevelReport:
     loss: float
     seconds: float
     objective: float
+    luminance: float | None = None
 
 
 @dataclass

@@ -669,8 +669,10 @@ def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereS
     # fit polishes it, and its pose stands where its final loss is credible.
     bests = searched.refined
     w, h = _search_size(work, options)
-    shares = [loss_share(loss_at(work, searched.targets[p.target].mask, p.camera, model, options, renderer, w, h), work,
-                         options.color) for p in bests]
+    # On the luminance, where the thresholds are set (Fit.share), whatever loss the fit minimises.
+    luminance = replace(options, color=False)
+    shares = [loss_share(loss_at(work, searched.targets[p.target].mask, p.camera, model, luminance, renderer, w, h),
+                         work, False) for p in bests]
     k = int(np.argmin(shares))
     if shares[k] > st.shading_polish:
         return None
@@ -683,7 +685,7 @@ def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereS
         return fit(work, model, pose.camera, options, plan, renderer, optimizer, progress, foreground, box=box)
 
     polished = polish(bests[k])
-    if loss_share(polished.loss, work, options.color) > st.shading_trust:
+    if polished.share(work, options.color) > st.shading_trust:
         return None
     if not st.rival_polish:
         return polished, _promoted(searched, bests[k]), "shading"
@@ -764,7 +766,7 @@ def _against_rival(polished: Fit, k: int, bests: list[Pose], shares: list[float]
         other = polish(bests[j])
     except PoseError:
         return polished, k, 1.0  # no fit from the rival (its wheels' side not in view): no rival
-    mine, theirs = (loss_share(f.loss, work, options.color) for f in (polished, other))
+    mine, theirs = (f.share(work, options.color) for f in (polished, other))
     apart = rotation_error(other.camera.R, polished.camera.R)
     if theirs < mine:
         polished, k, mine, theirs = other, j, theirs, mine
