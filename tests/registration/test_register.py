@@ -191,3 +191,10 @@ def test_a_colour_loss_is_judged_on_the_luminance(sedan, renderer):
     assert last.luminance is not None and last.luminance < 0.05 < 0.15 < last.loss / 3
     assert result.pose_stage == "shading" and result.checks["loss"] == last.luminance
     assert projection_error(sedan, result.camera, truth) < 1.0
+    # Where the edges' pose stands (the shading trusted nowhere), its level reports the
+    # luminance too, and the confidence's loss check reads it.
+    edges = register(photo, sedan, init_camera=start, renderer=renderer,
+                     options=RegistrationOptions.from_flat(color=True, shading_screen=0.0, shading_trust=0.0))
+    assert edges.pose_stage == "structure"
+    assert edges.levels[-1].luminance is not None and edges.checks["loss"] == edges.levels[-1].luminance
+    assert edges.levels[-1].luminance < edges.levels[-1].loss / 3

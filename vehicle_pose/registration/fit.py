@@ -128,9 +128,10 @@ class Fit:
         on the photo's luminance. The thresholds that judge it (``shading_screen``,
         ``shading_trust``, ``shading_polish``) are set on the luminance loss; a colour loss
         (``color``) also counts the photo's chroma, which on a grey or single-coloured car is
-        noise that no pose explains (a render's colour loss over its maximum is 0.5-0.7 at the
-        true pose, its luminance loss 0.003-0.014), so the luminance's is taken where the fit
-        had one."""
+        noise that no pose explains (on renders the colour loss over its maximum ends at
+        0.43-0.67 within a pixel of the truth, the luminance loss at 0.002-0.013), so the
+        luminance's is taken where the level has one
+        (``docs/decisions/0069-a-colour-loss-judged-on-the-luminance.md``)."""
         last = self.levels[-1]
         return last.luminance if last.luminance is not None else loss_share(last.loss, work, color)
 

@@ -47,7 +47,7 @@ from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit, loss_shar
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import box_mask, resegment, silhouette
-from vehicle_pose.registration.structure import loss_at
+from vehicle_pose.registration.structure import loss_at, luminance_at
 from vehicle_pose.render.renderer import Frame, Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.templates import ViewTemplates, match, turn_to
@@ -520,10 +520,11 @@ def sphere_fit(work: npt.NDArray[np.uint8], model: VehicleModel, searched: Spher
         mask = silhouette(model, camera, renderer) if options.segmentation.grabcut else np.ones((Hf, Wf), bool)
     grabcut = time.perf_counter() - t
     loss = loss_at(work, mask, camera, model, options, renderer, Wf, Hf)
+    luminance = luminance_at(work, mask, camera, model, options, renderer, Wf, Hf)
     size = _search_size(work, options)
     evaluations = sum(p.evaluations for p in searched.refined) + len(searched.ranked)
     level = LevelReport(size[0], size[1], model.exterior(options.pyramid.min_faces, renderer).n_faces, evaluations, 0,
-                        loss, searched.seconds, pose.cost)
+                        loss, searched.seconds, pose.cost, luminance)
     return Fit(camera, [level], mask, grabcut)
 
 
@@ -670,8 +671,8 @@ def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereS
     bests = searched.refined
     w, h = _search_size(work, options)
     # On the luminance, where the thresholds are set (Fit.share), whatever loss the fit minimises.
-    luminance = replace(options, color=False)
-    shares = [loss_share(loss_at(work, searched.targets[p.target].mask, p.camera, model, luminance, renderer, w, h),
+    gray = replace(options, color=False)
+    shares = [loss_share(loss_at(work, searched.targets[p.target].mask, p.camera, model, gray, renderer, w, h),
                          work, False) for p in bests]
     k = int(np.argmin(shares))
     if shares[k] > st.shading_polish:

@@ -49,7 +49,7 @@ from vehicle_pose.loss.edges import EdgeLoss
 from vehicle_pose.loss.invariant import make_target
 from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.model.mesh import Mesh
-from vehicle_pose.photo import resized, resized_mask
+from vehicle_pose.photo import is_gray, resized, resized_mask
 from vehicle_pose.registration.fit import Fit, Progress, face_budget
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
@@ -60,6 +60,7 @@ from vehicle_pose.search.views import Box, box_overflow, fit_to_box
 
 __all__ = [
     "BoxAnchoredParams", "EdgeFit", "Structure", "StructureCost", "find_structure", "structure_fit", "loss_at",
+    "luminance_at",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -264,12 +265,24 @@ def loss_at(work: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], came
     return float(make_loss(options.loss, target)(renderer.render(mesh, cam)))
 
 
+def luminance_at(work: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], camera: Camera,
+                 model: VehicleModel, options: RegistrationOptions, renderer: Renderer, width: int,
+                 height: int) -> float | None:
+    """With a colour loss on a colour photo, :func:`loss_at` on the photo's luminance, where the
+    shading's thresholds are set (:meth:`~vehicle_pose.registration.fit.Fit.share`); else None."""
+    if not options.color or is_gray(work):
+        return None
+    return loss_at(work, foreground, camera, model, replace(options, color=False), renderer, width, height)
+
+
 def structure_fit(work: npt.NDArray[np.uint8], model: VehicleModel, structure: Structure, shaded: Fit,
                   options: RegistrationOptions, renderer: Renderer) -> Fit:
     """The structure's pose as a :class:`~vehicle_pose.registration.fit.Fit`, its levels' ``loss``
     the named loss of their pose on the shading fit's final mask at their own size (so that every
     registration reports the same measure), with that mask and the shading fit's GrabCut time."""
     reports = [replace(level, loss=loss_at(work, shaded.foreground, cam, model, options, renderer, level.width,
-                                           level.height))
+                                           level.height),
+                       luminance=luminance_at(work, shaded.foreground, cam, model, options, renderer, level.width,
+                                              level.height))
                for level, cam in zip(structure.levels, structure.cameras, strict=True)]
     return Fit(structure.camera, reports, shaded.foreground, 0.0)
