@@ -71,7 +71,7 @@ def real_table(folder: Path, tag: str, missing: list[str]) -> str:
     lines = ["| mode | half a | half b | all | worse by 2 | wrong unflagged | right flagged | median s |",
              "|---|---|---|---|---|---|---|---|"]
     used = []
-    rows = [(label + partial, f"{kind}", started, shared)
+    rows = [(label + partial, kind, started, shared)
             for label, kind, started in REAL_MODES for partial, shared in (("", "real"), (", partial", "real-partial"))]
     rows.append(("camera + box, the model stretched", "init_stretched", True, "real"))
     for label, kind, started, shared in rows:

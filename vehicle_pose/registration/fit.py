@@ -50,7 +50,12 @@ EXIF_SPREAD = 0.03
 
 
 class _Screened(Exception):
-    """Raised by a first level's objective whose best pose is still above the plan's screen."""
+    """Raised by a first level's objective whose best pose is still above the plan's screen;
+    ``luminance``: that pose's luminance share, where the fit judges a colour loss by it."""
+
+    def __init__(self, luminance: float | None) -> None:
+        super().__init__()
+        self.luminance = luminance
 
 
 @dataclass(frozen=True)
@@ -304,10 +309,11 @@ def fit(
                 if screening:
                     if not lowest or value < lowest[0][0]:
                         lowest[:] = [(value, shading, cam)]
-                    if counter[0] == plan.screen_after and plan.screens(
-                            share_of(renderer.render(mesh, lowest[0][2])) if colour
-                            else loss_share(lowest[0][1], work, options.color)):
-                        raise _Screened
+                    if counter[0] == plan.screen_after:
+                        luminance = share_of(renderer.render(mesh, lowest[0][2])) if colour else None
+                        if plan.screens(luminance if luminance is not None
+                                        else loss_share(lowest[0][1], work, options.color)):
+                            raise _Screened(luminance)
                 return value
 
             def objective(x: npt.NDArray[np.float64]) -> float:
@@ -326,15 +332,14 @@ def fit(
         budget = budgets.fine_evaluations if li == len(sizes) - 1 and li > 0 else plan.evaluations
         try:
             runs = [search(camera, budget)]
-        except _Screened:
+        except _Screened as screened:
             # Still far from explaining the photo after a quarter of the level: no photo of the
             # benchmarks came under the screen from there (docs/decisions/0027-screen-within-
             # the-first-level.md), and the caller has another way to the pose.
             objective_value, shading, best = lowest[0]
             camera = best.scaled(Wf, Hf)
-            luminance = share_of(renderer.render(mesh, best)) if colour else None
             levels.append(LevelReport(w, h, mesh.n_faces, counter[0], 0, shading, time.perf_counter() - t,
-                                      objective_value, luminance))
+                                      objective_value, screened.luminance))
             if deadline is not None:
                 deadline.offer(camera, "shading")
             if progress is not None:
@@ -380,9 +385,13 @@ def fit(
                           restarts=sum(r.restarts for r, _ in runs))
         camera = params.camera(res.x).scaled(Wf, Hf)
         loss = res.fun
-        if edge_fn is not None or level_box is not None or plan.prior_lens is not None:
-            loss = float(loss_fn(renderer.render(mesh, camera.scaled(w, h))))
-        luminance = share_of(renderer.render(mesh, camera.scaled(w, h))) if colour else None
+        # The objective is the loss alone unless other terms join it; then the pose is drawn
+        # once more for its loss, and with a colour loss for its luminance: one draw for both.
+        rescored = edge_fn is not None or level_box is not None or plan.prior_lens is not None
+        final = renderer.render(mesh, camera.scaled(w, h)) if rescored or colour else None
+        if rescored and final is not None:
+            loss = float(loss_fn(final))
+        luminance = share_of(final) if colour and final is not None else None
         levels.append(LevelReport(w, h, mesh.n_faces, res.evaluations, res.restarts, loss, time.perf_counter() - t,
                                   res.fun, luminance))
         if deadline is not None:

@@ -43,11 +43,11 @@ from vehicle_pose.model.library import VehicleModel
 from vehicle_pose.model.metadata import parse_axis
 from vehicle_pose.photo import resized
 from vehicle_pose.registration.deadline import Deadline
-from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit, loss_share
+from vehicle_pose.registration.fit import Fit, FitPlan, Progress, fit
 from vehicle_pose.registration.options import RegistrationOptions
 from vehicle_pose.registration.result import LevelReport
 from vehicle_pose.registration.segmentation import box_mask, resegment, silhouette
-from vehicle_pose.registration.structure import loss_at, luminance_at
+from vehicle_pose.registration.structure import loss_at, losses_at
 from vehicle_pose.render.renderer import Frame, Renderer
 from vehicle_pose.search.optimize import Optimizer
 from vehicle_pose.search.templates import ViewTemplates, match, turn_to
@@ -519,8 +519,7 @@ def sphere_fit(work: npt.NDArray[np.uint8], model: VehicleModel, searched: Spher
     if mask is None:
         mask = silhouette(model, camera, renderer) if options.segmentation.grabcut else np.ones((Hf, Wf), bool)
     grabcut = time.perf_counter() - t
-    loss = loss_at(work, mask, camera, model, options, renderer, Wf, Hf)
-    luminance = luminance_at(work, mask, camera, model, options, renderer, Wf, Hf)
+    loss, luminance = losses_at(work, mask, camera, model, options, renderer, Wf, Hf)
     size = _search_size(work, options)
     evaluations = sum(p.evaluations for p in searched.refined) + len(searched.ranked)
     level = LevelReport(size[0], size[1], model.exterior(options.pyramid.min_faces, renderer).n_faces, evaluations, 0,
@@ -670,10 +669,10 @@ def _shading(work: npt.NDArray[np.uint8], model: VehicleModel, searched: SphereS
     # fit polishes it, and its pose stands where its final loss is credible.
     bests = searched.refined
     w, h = _search_size(work, options)
-    # On the luminance, where the thresholds are set (Fit.share), whatever loss the fit minimises.
+    # On the luminance, where the thresholds are set (Fit.share), whatever loss the fit minimises:
+    # the luminance's maximum is 1, so the loss is its share.
     gray = replace(options, color=False)
-    shares = [loss_share(loss_at(work, searched.targets[p.target].mask, p.camera, model, gray, renderer, w, h),
-                         work, False) for p in bests]
+    shares = [loss_at(work, searched.targets[p.target].mask, p.camera, model, gray, renderer, w, h) for p in bests]
     k = int(np.argmin(shares))
     if shares[k] > st.shading_polish:
         return None

@@ -60,7 +60,7 @@ from vehicle_pose.search.views import Box, box_overflow, fit_to_box
 
 __all__ = [
     "BoxAnchoredParams", "EdgeFit", "Structure", "StructureCost", "find_structure", "structure_fit", "loss_at",
-    "luminance_at",
+    "losses_at",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -258,21 +258,24 @@ def find_structure(
 def loss_at(work: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], camera: Camera, model: VehicleModel,
             options: RegistrationOptions, renderer: Renderer, width: int, height: int) -> float:
     """The named loss of ``camera`` (any size) on ``work`` and ``foreground`` reduced to ``width`` x ``height``."""
-    target = make_target(resized(work, width, height), resized_mask(foreground, width, height), color=options.color)
+    return losses_at(work, foreground, camera, model, options, renderer, width, height)[0]
+
+
+def losses_at(work: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], camera: Camera,
+              model: VehicleModel, options: RegistrationOptions, renderer: Renderer, width: int,
+              height: int) -> tuple[float, float | None]:
+    """:func:`loss_at`, and with a colour loss on a colour photo the same loss on the photo's
+    luminance, where the shading's thresholds are set
+    (:meth:`~vehicle_pose.registration.fit.Fit.share`; else None), from one draw of the pose."""
+    small, mask = resized(work, width, height), resized_mask(foreground, width, height)
     cam = camera.scaled(width, height)
     mesh = model.exterior(face_budget(float(max(silhouette(model, cam, renderer).sum(), 1)), options.pyramid),
                           renderer)
-    return float(make_loss(options.loss, target)(renderer.render(mesh, cam)))
-
-
-def luminance_at(work: npt.NDArray[np.uint8], foreground: npt.NDArray[np.bool_], camera: Camera,
-                 model: VehicleModel, options: RegistrationOptions, renderer: Renderer, width: int,
-                 height: int) -> float | None:
-    """With a colour loss on a colour photo, :func:`loss_at` on the photo's luminance, where the
-    shading's thresholds are set (:meth:`~vehicle_pose.registration.fit.Fit.share`); else None."""
+    frame = renderer.render(mesh, cam)
+    loss = float(make_loss(options.loss, make_target(small, mask, color=options.color))(frame))
     if not options.color or is_gray(work):
-        return None
-    return loss_at(work, foreground, camera, model, replace(options, color=False), renderer, width, height)
+        return loss, None
+    return loss, float(make_loss(options.loss, make_target(small, mask, color=False))(frame))
 
 
 def structure_fit(work: npt.NDArray[np.uint8], model: VehicleModel, structure: Structure, shaded: Fit,
@@ -280,9 +283,8 @@ def structure_fit(work: npt.NDArray[np.uint8], model: VehicleModel, structure: S
     """The structure's pose as a :class:`~vehicle_pose.registration.fit.Fit`, its levels' ``loss``
     the named loss of their pose on the shading fit's final mask at their own size (so that every
     registration reports the same measure), with that mask and the shading fit's GrabCut time."""
-    reports = [replace(level, loss=loss_at(work, shaded.foreground, cam, model, options, renderer, level.width,
-                                           level.height),
-                       luminance=luminance_at(work, shaded.foreground, cam, model, options, renderer, level.width,
-                                              level.height))
-               for level, cam in zip(structure.levels, structure.cameras, strict=True)]
+    reports = []
+    for level, cam in zip(structure.levels, structure.cameras, strict=True):
+        loss, luminance = losses_at(work, shaded.foreground, cam, model, options, renderer, level.width, level.height)
+        reports.append(replace(level, loss=loss, luminance=luminance))
     return Fit(structure.camera, reports, shaded.foreground, 0.0)
